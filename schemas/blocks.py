@@ -1,0 +1,28 @@
+import pyarrow as pa
+
+# One row per motion block after modal state is resolved (intermediate table between parse and
+# split; also what the corrected-program writer maps coordinates back onto).
+# motion: 0 rapid (G0), 1 linear (G1), 2 arc cw (G2), 3 arc ccw (G3).
+# plane: 17 | 18 | 19. Arc centre absolute, mm. Coordinates absolute, mm, machine frame.
+SCHEMA = pa.schema([
+    pa.field("program_id", pa.string(), nullable=False),
+    pa.field("block_no", pa.int32(), nullable=False),   # ordinal of the block in the program, 1-based
+    pa.field("line_no", pa.int32(), nullable=False),    # 1-based line in the file
+    pa.field("n_number", pa.int32()),                    # the N word, when the block has one
+    pa.field("motion", pa.int8(), nullable=False),
+    pa.field("plane", pa.int16(), nullable=False),
+    pa.field("x0_mm", pa.float64(), nullable=False),
+    pa.field("y0_mm", pa.float64(), nullable=False),
+    pa.field("z0_mm", pa.float64(), nullable=False),
+    pa.field("x1_mm", pa.float64(), nullable=False),
+    pa.field("y1_mm", pa.float64(), nullable=False),
+    pa.field("z1_mm", pa.float64(), nullable=False),
+    pa.field("cx_mm", pa.float64()),
+    pa.field("cy_mm", pa.float64()),
+    pa.field("cz_mm", pa.float64()),
+    pa.field("feed_mm_min", pa.float64()),
+    pa.field("spindle_rpm", pa.float64(), nullable=False),
+    pa.field("tool", pa.int32()),
+    pa.field("inch", pa.bool_(), nullable=False),        # block was written in G20 (values converted)
+    pa.field("incremental", pa.bool_(), nullable=False), # block was written in G91
+])

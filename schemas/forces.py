@@ -1,0 +1,11 @@
+import pyarrow as pa
+
+# DESIGN §6 minimum columns for `forces`; the stage that fills it may add more here.
+SCHEMA = pa.schema([
+    pa.field('program_id', pa.string()),
+    pa.field('pass_id', pa.int32()),
+    pa.field('rotation_deg', pa.list_(pa.float64())),
+    pa.field('fx_n', pa.list_(pa.float64())),
+    pa.field('fy_n', pa.list_(pa.float64())),
+    pa.field('fz_n', pa.list_(pa.float64())),
+])

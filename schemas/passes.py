@@ -1,0 +1,22 @@
+import pyarrow as pa
+
+# One row per linear move after splitting (DESIGN §6). pass_id: execution order, 0-based.
+# motion as in blocks: 0 rapid, 1 linear, 2 arc cw chord, 3 arc ccw chord.
+SCHEMA = pa.schema([
+    pa.field("program_id", pa.string(), nullable=False),
+    pa.field("pass_id", pa.int32(), nullable=False),
+    pa.field("block_no", pa.int32(), nullable=False),
+    pa.field("line_no", pa.int32(), nullable=False),
+    pa.field("motion", pa.int8(), nullable=False),
+    pa.field("x0_mm", pa.float64(), nullable=False),
+    pa.field("y0_mm", pa.float64(), nullable=False),
+    pa.field("z0_mm", pa.float64(), nullable=False),
+    pa.field("x1_mm", pa.float64(), nullable=False),
+    pa.field("y1_mm", pa.float64(), nullable=False),
+    pa.field("z1_mm", pa.float64(), nullable=False),
+    pa.field("feed_mm_min", pa.float64(), nullable=False),  # rapid rate for G0
+    pa.field("spindle_rpm", pa.float64(), nullable=False),
+    pa.field("tool", pa.int32()),
+    pa.field("t_start_s", pa.float64(), nullable=False),
+    pa.field("t_end_s", pa.float64(), nullable=False),
+])
