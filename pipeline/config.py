@@ -108,10 +108,9 @@ class Prune(_Strict):
 class Split(_Strict):
     """Seed para 0051: how NC motion becomes passes."""
 
-    chord_tol_mm: float = Field(0.005, gt=0, le=1.0)   # arcs → chords within this sagitta
-    max_pass_mm: float = Field(5.0, gt=0)              # longer moves are split
-    merge_angle_deg: float = Field(0.5, ge=0, le=10)  # consecutive short moves merged below this turn
-    merge_max_mm: float = Field(0.5, ge=0)            # ... while the merged pass stays this short
+    chord_tol_mm: float = Field(0.001, gt=0, le=1.0)  # arcs → chords, and merges, within this deviation
+    max_pass_mm: float = Field(5.0, gt=0)             # longer cutting moves are split
+    merge_max_mm: float = Field(0.5, ge=0)            # short moves merged into passes up to this long
 
 
 class Box(_Strict):
@@ -162,10 +161,12 @@ class Workflow(_Strict):
 def _pick(v, t, key):
     if not isinstance(v, list):
         return v
+    if t is None:
+        raise WorkflowError(f"{key}: the program calls no tool (no T word with M6) and the workflow lists several")
     for e in v:
         if e.t == t:
             return e
-    raise WorkflowError(f"{key}: no entry for T{t}")
+    raise WorkflowError(f"{key}: no entry for T{t} (the workflow has T{', T'.join(str(e.t) for e in v)})")
 
 
 def _format_error(path: Path, err: ValidationError) -> str:

@@ -2,7 +2,7 @@ import pyarrow as pa
 
 # One row per motion block after modal state is resolved (intermediate table between parse and
 # split; also what the corrected-program writer maps coordinates back onto).
-# motion: 0 rapid (G0), 1 linear (G1), 2 arc cw (G2), 3 arc ccw (G3).
+# motion: 0 rapid (G0), 1 linear (G1), 2 arc cw (G2), 3 arc ccw (G3), 4 dwell (G4).
 # plane: 17 | 18 | 19. Arc centre absolute, mm. Coordinates absolute, mm, machine frame.
 SCHEMA = pa.schema([
     pa.field("program_id", pa.string(), nullable=False),
@@ -25,4 +25,5 @@ SCHEMA = pa.schema([
     pa.field("tool", pa.int32()),
     pa.field("inch", pa.bool_(), nullable=False),        # block was written in G20 (values converted)
     pa.field("incremental", pa.bool_(), nullable=False), # block was written in G91
+    pa.field("dwell_s", pa.float64(), nullable=False),   # G4 blocks (motion 4): dwell time
 ])

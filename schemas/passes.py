@@ -5,7 +5,8 @@ import pyarrow as pa
 SCHEMA = pa.schema([
     pa.field("program_id", pa.string(), nullable=False),
     pa.field("pass_id", pa.int32(), nullable=False),
-    pa.field("block_no", pa.int32(), nullable=False),
+    pa.field("block_no", pa.int32(), nullable=False),   # first NC block of the pass
+    pa.field("block_end", pa.int32(), nullable=False),  # last NC block (passes merge short moves)
     pa.field("line_no", pa.int32(), nullable=False),
     pa.field("motion", pa.int8(), nullable=False),
     pa.field("x0_mm", pa.float64(), nullable=False),
