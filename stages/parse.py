@@ -99,89 +99,137 @@ def _ffill(values: np.ndarray, initial=np.nan) -> np.ndarray:
     return out
 
 
+# byte classes for the tokenizer (one table lookup per byte instead of many comparisons)
+_OTHER, _LETTER, _NUM, _BLANK, _NL, _OPEN, _CLOSE, _SEMI, _PCT, _CTRL = range(10)
+_CLASS = np.full(256, _OTHER, np.uint8)
+_CLASS[:32] = _CTRL
+_CLASS[[9, 13, 32]] = _BLANK
+_CLASS[10] = _NL
+_CLASS[26] = _BLANK  # DOS end-of-file marker
+_CLASS[ord("A"):ord("Z") + 1] = _LETTER
+_CLASS[ord("a"):ord("z") + 1] = _LETTER
+_CLASS[[ord(c) for c in "0123456789.+-"]] = _NUM
+_CLASS[[ord("("), ord(")"), ord(";"), ord("%")]] = [_OPEN, _CLOSE, _SEMI, _PCT]
+_UPPER = np.arange(256, dtype=np.uint8)
+_UPPER[ord("a"):ord("z") + 1] -= 32
+_POW10 = 10.0 ** np.arange(20)
+
+
 def tokenize(data: bytes, path: str):
-    """Split a program into words. Returns per-word (line index, letter, value) and line info."""
+    """Split a program into words.
+
+    Returns
+    -------
+    letters : (w,) uint8 address letters (upper case)
+    values : (w,) float64 values
+    w_line : (w,) int line index (0-based) of each word
+    n_lines : int
+    """
     err = _Errors(path)
     raw = np.frombuffer(data, dtype=np.uint8)
     if raw.size == 0:
         raise InputError(f"{path}:1: empty file")
-    nl = raw == 10
-    line_of = np.concatenate(([0], np.cumsum(nl[:-1]))).astype(np.int64)
+    cls = _CLASS[raw]
+    is_nl = cls == _NL
+    nlc = np.cumsum(is_nl, dtype=np.int32)
+    line_of = nlc - is_nl          # 0-based line of every byte
     n_lines = int(line_of[-1]) + 1
-    col_of = np.arange(raw.size) - np.concatenate(([0], np.flatnonzero(nl) + 1))[line_of]
 
-    ctrl = (raw < 32) & ~np.isin(raw, (9, 10, 13))
-    ctrl[-1] &= raw[-1] != 26  # a trailing DOS EOF marker is harmless
-    err.add_first(ctrl, line_of, lambda i: f"binary data (byte 0x{raw[i]:02x} at column {col_of[i] + 1}): not a text NC program")
-    err.raise_if_any()
+    ctrl = cls == _CTRL
+    if ctrl.any():
+        def _col(i):
+            return i - (np.flatnonzero(is_nl[:i])[-1] + 1 if is_nl[:i].any() else 0)
+        err.add_first(ctrl, line_of, lambda i: f"binary data (byte 0x{raw[i]:02x} at column {_col(i) + 1}): not a text NC program")
+        err.raise_if_any()
 
-    # comments: ( ... ) within a line, and ; to end of line outside parentheses
-    opens, closes = raw == 40, raw == 41
-    depth = np.cumsum(opens.astype(np.int32) - closes)
-    bal = np.bincount(line_of, weights=opens, minlength=n_lines) - np.bincount(line_of, weights=closes, minlength=n_lines)
-    err.add_first(bal != 0, np.arange(n_lines), "unbalanced parentheses in a comment")
-    err.add_first(depth < 0, line_of, "')' without '('")
-    err.raise_if_any()
-    in_paren = (depth > 0) | closes
-    semi = (raw == 59) & ~in_paren
-    cs = np.cumsum(semi)
-    start_cs = np.concatenate(([0], cs[np.flatnonzero(nl)]))
-    in_semi = (cs - start_cs[line_of]) > 0
-    comment = in_paren | in_semi
-    # '%' lines (tape start/end) carry no code
-    first_char = np.full(n_lines, 0, np.uint8)
-    vis = ~comment & ~np.isin(raw, (9, 10, 13, 32))
-    vi = np.flatnonzero(vis)
-    if vi.size:
-        first_in_line = np.unique(line_of[vi], return_index=True)
-        first_char[first_in_line[0]] = raw[vi[first_in_line[1]]]
-    pct_line = first_char == 37
-    code = vis & ~pct_line[line_of]
-
-    up = raw.copy()
-    lower = (up >= 97) & (up <= 122)
-    up[lower] -= 32
+    # comments: ( ... ) closed on the same line, and ; to the end of the line outside parentheses
+    opens, closes = cls == _OPEN, cls == _CLOSE
+    comment = np.zeros(raw.size, bool)
+    if opens.any() or closes.any():
+        depth = np.cumsum(opens, dtype=np.int32) - np.cumsum(closes, dtype=np.int32)
+        err.add_first(depth < 0, line_of, "')' without '('")
+        at_eol = np.concatenate((depth[is_nl], depth[-1:]))
+        err.add_first(at_eol != 0, np.arange(at_eol.size), "unbalanced parentheses: comment not closed on its line")
+        err.raise_if_any()
+        comment = (depth > 0) | closes
+    semi = (cls == _SEMI) & ~comment
+    if semi.any():
+        cs = np.cumsum(semi, dtype=np.int32)
+        start_cs = np.concatenate(([0], cs[is_nl]))
+        comment |= (cs - start_cs[line_of]) > 0
+    code = ~comment & (cls != _BLANK) & ~is_nl
     pos = np.flatnonzero(code)
-    ch, ln = up[pos], line_of[pos]
-    is_letter = (ch >= 65) & (ch <= 90)
-    is_num = ((ch >= 48) & (ch <= 57)) | (ch == 46) | (ch == 45) | (ch == 43)
-    bad = ~(is_letter | is_num)
-
-    def _bad_char_msg(i):
-        c = chr(ch[i]) if ch[i] < 128 else f"byte 0x{ch[i]:02x}"
-        return _UNSUPPORTED_CHAR.get(c, f"unexpected character {c!r} outside a comment")
-    err.add_first(bad, ln, _bad_char_msg)
+    ln = line_of[pos]
+    first_in_line = np.ones(pos.size, bool)
+    first_in_line[1:] = ln[1:] != ln[:-1]
+    # '%' lines (tape start/end) carry no code
+    pct = raw[pos] == 37
+    if pct.any():
+        keep = ~np.isin(ln, ln[first_in_line & pct])
+        pos, ln, first_in_line = pos[keep], ln[keep], first_in_line[keep]
+        err.add_first(raw[pos] == 37, ln, "'%' inside a block")
+    ch, kind = _UPPER[raw[pos]], cls[pos]
+    is_letter = kind == _LETTER
+    bad = (kind != _LETTER) & (kind != _NUM)
+    if bad.any():
+        def _bad_char_msg(i):
+            c = chr(ch[i]) if ch[i] < 128 else f"byte 0x{ch[i]:02x}"
+            return _UNSUPPORTED_CHAR.get(c, f"unexpected character {c!r} outside a comment")
+        err.add_first(bad, ln, _bad_char_msg)
     for letter, why in _UNSUPPORTED_LETTER.items():
         err.add_first(ch == ord(letter), ln, why)
-    err.raise_if_any()
-
-    word = np.cumsum(is_letter) - 1
-    w_line = ln[is_letter]
-    orphan = ~is_letter & ((word < 0) | (w_line[np.maximum(word, 0)] != ln))
-    err.add_first(orphan, ln, "number without an address letter")
+    # every block starts with an address letter
+    err.add_first(first_in_line & ~is_letter, ln, "number without an address letter")
     err.raise_if_any()
 
     starts = np.flatnonzero(is_letter)
-    ends = np.concatenate((starts[1:], [ch.size]))
+    ends = np.empty_like(starts)
+    ends[:-1] = starts[1:]
+    ends[-1:] = ch.size
+    # a word also ends at the end of its line
     vlen = ends - starts - 1
     letters = ch[starts]
+    w_line = ln[starts]
     err.add_first(vlen == 0, w_line, lambda i: f"address {chr(letters[i])} without a value")
-    err.add_first(vlen > 16, w_line, lambda i: f"value of {chr(letters[i])} is too long")
+    err.add_first(vlen > 15, w_line, lambda i: f"value of {chr(letters[i])} is too long")
     err.raise_if_any()
-    width = int(vlen.max()) if vlen.size else 1
-    j = np.arange(width)
-    take = starts[:, None] + 1 + j
-    valid = j < vlen[:, None]
-    mat = np.where(valid, ch[np.minimum(take, ch.size - 1)], 0).astype(np.uint8)
-    # number syntax: optional sign first, at most one '.', at least one digit
-    digits = ((mat >= 48) & (mat <= 57)).sum(1)
-    dots = (mat == 46).sum(1)
-    signs_late = ((mat[:, 1:] == 45) | (mat[:, 1:] == 43)).any(1) if width > 1 else np.zeros(len(mat), bool)
-    badnum = (digits == 0) | (dots > 1) | signs_late
-    err.add_first(badnum, w_line, lambda i: f"malformed number {bytes(mat[i][valid[i]]).decode()!r} for address {chr(letters[i])}")
-    err.raise_if_any()
-    values = np.ascontiguousarray(mat).view(f"S{width}").ravel().astype(np.float64)
+    values = _numbers(ch, starts + 1, vlen, letters, w_line, err)
     return letters, values, w_line, n_lines
+
+
+def _numbers(ch, start, length, letters, w_line, err):
+    """Convert the value characters of every word to float, vectorised and exactly.
+
+    Horner's rule over the character columns builds an integer mantissa (≤ 15 digits, exact in
+    float64) that is divided by 10**decimals: correctly rounded, i.e. equal to Python's float().
+    """
+    width = int(length.max()) if length.size else 1
+    n = start.size
+    mant = np.zeros(n)
+    decimals = np.zeros(n, np.int64)
+    n_dig = np.zeros(n, np.int64)
+    n_dot = np.zeros(n, np.int64)
+    late_sign = np.zeros(n, bool)
+    for j in range(width):
+        inside = j < length
+        c = np.where(inside, ch[np.minimum(start + j, ch.size - 1)], 0)
+        d = c.astype(np.int64) - 48
+        is_d = (d >= 0) & (d <= 9)
+        mant = np.where(is_d, mant * 10 + d, mant)
+        decimals += is_d & (n_dot > 0)
+        n_dig += is_d
+        n_dot += c == 46
+        if j:
+            late_sign |= (c == 45) | (c == 43)
+    badnum = (n_dig == 0) | (n_dot > 1) | late_sign
+
+    def _msg(i):
+        text = bytes(ch[start[i]:start[i] + length[i]]).decode()
+        return f"malformed number {text!r} for address {chr(letters[i])}"
+    err.add_first(badnum, w_line, _msg)
+    err.raise_if_any()
+    neg = ch[start] == 45
+    return np.where(neg, -mant, mant) / _POW10[decimals]
 
 
 def parse_program(data: bytes, path: str, program_id: str) -> tuple[pa.Table, dict]:
@@ -190,8 +238,10 @@ def parse_program(data: bytes, path: str, program_id: str) -> tuple[pa.Table, di
     Raises InputError(``path:line: ...``) for anything unsupported or inconsistent.
     """
     letters, values, w_line, n_lines = tokenize(data, path)
+    if letters.size == 0:
+        raise InputError(f"{path}:1: no NC blocks in the file (only comments or blank lines)")
     err = _Errors(path)
-    code_lines = np.unique(w_line)
+    code_lines = w_line[np.concatenate(([True], w_line[1:] != w_line[:-1]))]  # w_line is sorted
     n_blocks = int(code_lines.size)
 
     # --- G words -> modal groups ----------------------------------------------------------------
@@ -236,6 +286,12 @@ def parse_program(data: bytes, path: str, program_id: str) -> tuple[pa.Table, di
         cols[a] = col
     err.raise_if_any()
     has = {a: ~np.isnan(c) for a, c in cols.items()}
+    for a in "NTOHD":
+        v = cols[a]
+        err.add_first(has[a] & ((v != np.round(v)) | (v < 0) | (v > 2**31 - 1)), np.arange(n_lines),
+                      f"{a} must be a whole number between 0 and 2147483647")
+    err.add_first(has["F"] & (cols["F"] < 0), np.arange(n_lines), "negative feed")
+    err.add_first(has["S"] & (cols["S"] < 0), np.arange(n_lines), "negative spindle speed")
     err.add_first(has["Q"] & ~np.isin(np.arange(n_lines), g_line[g10 == 51]), np.arange(n_lines),
                   "Q words are only accepted with G5.1 (canned-cycle Q is not supported)")
     err.add_first(has["P"] & np.isnan(dwell_g), np.arange(n_lines), "P words are only accepted with G4 (dwell)")

@@ -179,7 +179,8 @@ def split_blocks(blocks: pa.Table, params: dict) -> pa.Table:
         (motion[owner][1:] != RAPID) & (motion[owner][:-1] != RAPID))
     same_kind[1:] &= seg_feed[1:] == seg_feed[:-1]
     mergeable = (motion[owner] != RAPID) & same_kind
-    mergeable[0] = motion[owner[:1]] != RAPID if owner.size else False
+    if owner.size:
+        mergeable[0] = motion[owner[0]] != RAPID
     first, last = _merge_short(owner, p0, p1, mergeable, sp["merge_max_mm"], sp["chord_tol_mm"])
 
     q0, q1 = p0[first], p1[last]
@@ -210,9 +211,13 @@ def split_blocks(blocks: pa.Table, params: dict) -> pa.Table:
         "x1_mm": q1[:, 0], "y1_mm": q1[:, 1], "z1_mm": q1[:, 2],
         "feed_mm_min": pfeed,
         "spindle_rpm": b["spindle_rpm"][own0].astype(float),
-        "tool": pa.array(b["tool"][own0], pa.float64()).cast(pa.int32()) if n else pa.array([], pa.int32()),
+        "tool": _nullable_int(b["tool"][own0].astype(float)),
         "t_start_s": t_start, "t_end_s": t_end,
     })
+
+
+def _nullable_int(x: np.ndarray) -> pa.Array:
+    return pa.array(x, pa.float64(), mask=np.isnan(x)).cast(pa.int32())
 
 
 def run(inputs: dict, params: dict) -> dict[str, pa.Table]:
