@@ -1,0 +1,380 @@
+"""Mechanistic micro-edge cutting-force kernels (DESIGN §7; seed 000 paras 0059–0061).
+
+The tool's flutes are cut into micro-edges, one per axial level of the engagement grid (the cutting
+region found by rendering, claim 5). At every rotation step each micro-edge that lies inside the
+cutting region removes a chip of thickness ``h`` and feels the Altintas / Lee–Altintas forces::
+
+    dFt = Ktc·h·db + Kte·dS      (tangential, against the cutting speed)
+    dFr = Krc·h·db + Kre·dS      (radial, along the envelope normal, pushing the edge out of the cut)
+    dFa = Kac·h·db + Kae·dS      (axial, along the envelope generator)
+
+which are rotated into x, y, z and summed over flutes and micro-edges.
+
+Conventions (all angles in degrees in the public API)
+-----------------------------------------------------
+Feed frame: x_f = feed direction, y_f = 90° counter-clockwise from it seen from above (the left of
+the feed), z up along the tool axis, origin at the tool tip.
+
+Position angle φ: angle of a point about the tool axis, counter-clockwise from x_f seen from above
+(DESIGN §5); the point is at (r·cos φ, r·sin φ, z).
+
+Spindle angle θ (``rotation_deg`` of the forces/deflection tables): the spindle turns clockwise
+seen from above (M3), so a flute's φ *decreases* as θ grows. θ = 0 when the tip end (z = 0) of
+flute 0 points along the feed direction. Flute ``j`` (0 … N−1) at height z sits at::
+
+    φ_j(θ, z) = −θ − 360·j/N + lag(z),     lag(z) = z·tan(β)/R  (rad → deg)
+
+(right-hand helix, constant lead: the edge higher up trails the tip end, i.e. sits at larger φ).
+θ is proportional to time: t = θ/360 · 60/rpm.
+
+Immersion angle (Altintas) ψ = 90° − φ: measured clockwise from +y_f, ψ = 0 at the left of the
+feed (where an up-milling chip starts), 90° ahead of the tool, 180° at the right (where a
+down-milling chip ends). Chip thickness ``h = fz·sin ψ·sin κ = fz·cos φ·sin κ`` with κ the axial
+immersion angle (angle between the downward tool axis and the outward envelope normal: κ equals the
+contact angle q on a ball or corner, 90° on the cylindrical side). Only h > 0 cuts (front half).
+
+Forces returned are the forces **acting on the tool** (the reaction of the cutting force acting on
+the workpiece): the tangential force on the tool points along the cutting speed's opposite, the
+radial force pushes the tool away from the material, and with a right-hand helix the axial force
+pulls the tool down (Fz < 0). In the feed frame (Lee & Altintas 1996 with ψ = 90° − φ)::
+
+    dFx = −dFr·sin κ·cos φ − dFt·sin φ − dFa·cos κ·cos φ
+    dFy = −dFr·sin κ·sin φ + dFt·cos φ − dFa·cos κ·sin φ
+    dFz = +dFr·cos κ       − dFa·sin κ
+
+Chip width and edge length: ``db = dS`` = length of the envelope generator (the tool profile in a
+meridian plane) between the level's bounds, exact for ball, bull-nose and flat side. So for a
+flat end mill db = dS = dz whatever the helix, which is the definition under which Altintas'
+mean-force formulas hold (edge coefficients are per unit length of generator; a helical edge is
+1/cos β longer — that factor is absorbed by calibration with this same model). The flat bottom
+face (κ = 0) is not in the engagement grid (levels are at z > 0) and removes no chip thickness;
+its edge rubbing is neglected.
+
+Runout: the rotation axis is offset by ``runout_um`` (eccentricity e) towards flute 0, so flute j
+turns on radius R + ρ_j with ρ_j = e·cos(2π j/N) (flute 0 at the maximum). The chip of flute j is
+the material left by the most recent flute that cut deeper (Kline–DeVor, generalised)::
+
+    h_j = sin κ · max(0, min_{m=1..N} (m·fz·cos φ + ρ_j − ρ_{j−m}))
+
+Engagement grid (the ``engagement`` table): bool E of shape (n_z, n_phi); E[k, i] is True when the
+envelope point at height z_k = (k+0.5)·dz above the tip and angle φ_i = (i+0.5)·360/n_phi is inside
+the material being cut. Stored as ``np.packbits(E.ravel())`` (C order).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+COEFF_NAMES = ("ktc", "krc", "kac", "kte", "kre", "kae")
+DEFAULT_N_ROT = 128
+
+
+# --------------------------------------------------------------------------------------------
+# tool envelope
+# --------------------------------------------------------------------------------------------
+def corner_radius_mm(tool: dict) -> float:
+    """Corner radius of the axisymmetric envelope: R for ball, corner_radius_mm for bull, 0 flat."""
+    radius = float(tool["diameter_mm"]) / 2
+    kind = tool["type"]
+    if kind == "ball":
+        return radius
+    if kind == "flat":
+        return 0.0
+    if kind == "bull":
+        return float(tool["corner_radius_mm"])
+    raise ValueError(f"tool.type: unknown tool type {kind!r} (ball, bull or flat)")
+
+
+def envelope_at_height(radius_mm: float, corner_mm: float, z_mm):
+    """Envelope radius r(z) and axial immersion angle κ(z) (rad) of an axisymmetric end mill.
+
+    Parameters
+    ----------
+    radius_mm : float
+        Tool radius R.
+    corner_mm : float
+        Corner radius rc (R for a ball, 0 for a flat end mill).
+    z_mm : array_like
+        Heights above the tip (≥ 0).
+
+    Returns
+    -------
+    r_mm, kappa_rad : ndarray
+        On the corner (z < rc): z = rc·(1 − cos κ), r = R − rc + rc·sin κ; above it κ = 90°, r = R.
+    """
+    z = np.asarray(z_mm, dtype=float)
+    if corner_mm <= 0:
+        return np.full_like(z, radius_mm), np.full_like(z, np.pi / 2)
+    zc = np.clip(z, 0.0, corner_mm)
+    kappa = np.arccos(1.0 - zc / corner_mm)
+    r = radius_mm - corner_mm + corner_mm * np.sin(kappa)
+    return r, kappa
+
+
+def generator_length_mm(radius_mm: float, corner_mm: float, z_mm):
+    """Arc length of the envelope generator from the tip's corner start up to height z."""
+    z = np.asarray(z_mm, dtype=float)
+    if corner_mm <= 0:
+        return np.maximum(z, 0.0)
+    zc = np.clip(z, 0.0, corner_mm)
+    return corner_mm * np.arccos(1.0 - zc / corner_mm) + np.maximum(z - corner_mm, 0.0)
+
+
+def corner_height_mm(corner_mm: float, contact_deg):
+    """Height above the tip of the corner point at contact angle q (q in degrees, ≤ 90)."""
+    q = np.radians(np.clip(np.asarray(contact_deg, dtype=float), 0.0, 90.0))
+    return corner_mm * (1.0 - np.cos(q))
+
+
+def helix_lag_deg(radius_mm: float, helix_deg: float, z_mm):
+    """Angular lag of the edge at height z behind its tip end: z·tan β / R (constant lead)."""
+    return np.degrees(np.asarray(z_mm, dtype=float) * np.tan(np.radians(helix_deg)) / radius_mm)
+
+
+def flute_offsets_mm(flutes: int, runout_um: float) -> np.ndarray:
+    """Radial offset ρ_j (mm) of each flute for an axis eccentricity ``runout_um`` towards flute 0."""
+    j = np.arange(int(flutes))
+    return (float(runout_um) * 1e-3) * np.cos(2 * np.pi * j / int(flutes))
+
+
+def spindle_angle_at(phi_deg, z_mm, flute, flutes: int, radius_mm: float, helix_deg: float):
+    """Spindle angle θ (deg, in [0, 360)) at which ``flute`` passes position angle φ at height z.
+
+    Inverts φ_j(θ, z) = −θ − 360·j/N + lag(z) (see module docstring).
+    """
+    theta = -np.asarray(phi_deg, dtype=float) - 360.0 * np.asarray(flute) / flutes \
+        + helix_lag_deg(radius_mm, helix_deg, z_mm)
+    return np.mod(theta, 360.0)
+
+
+# --------------------------------------------------------------------------------------------
+# engagement grid
+# --------------------------------------------------------------------------------------------
+def pack_engagement(engaged: np.ndarray) -> bytes:
+    """Pack one bool grid (n_z, n_phi) as the ``engagement.mask`` column stores it."""
+    return np.packbits(np.asarray(engaged, dtype=bool).ravel()).tobytes()
+
+
+def unpack_engagement(masks, n_z: int, n_phi: int) -> np.ndarray:
+    """Unpack ``engagement.mask`` values (packbits of bool (n_z, n_phi), C order).
+
+    Parameters
+    ----------
+    masks : sequence of bytes, or uint8 array (P, n_bytes)
+    n_z, n_phi : int
+        Grid shape shared by all rows given.
+
+    Returns
+    -------
+    ndarray of bool, shape (P, n_z, n_phi)
+    """
+    n_cells = int(n_z) * int(n_phi)
+    n_bytes = (n_cells + 7) // 8
+    if isinstance(masks, np.ndarray) and masks.dtype == np.uint8 and masks.ndim == 2:
+        raw = masks
+    else:
+        masks = list(masks)
+        if any(len(m) != n_bytes for m in masks):
+            raise ValueError(f"engagement mask length differs from ceil({n_z}·{n_phi}/8) = {n_bytes} bytes")
+        raw = np.frombuffer(b"".join(masks), dtype=np.uint8).reshape(len(masks), n_bytes)
+    bits = np.unpackbits(raw, axis=1, count=n_cells)
+    return bits.reshape(len(raw), n_z, n_phi).view(bool)
+
+
+# --------------------------------------------------------------------------------------------
+# micro-edge force model
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class EdgeGrid:
+    """Micro-edge geometry of one tool on one engagement grid (one entry per axial level)."""
+
+    z_mm: np.ndarray       # level centres
+    kappa_rad: np.ndarray  # axial immersion angle at the centre
+    ds_mm: np.ndarray      # generator length of the level (= chip width db = edge length dS)
+    lag_deg: np.ndarray    # helix lag of the level centre
+    radius_mm: float
+    flutes: int
+
+
+def edge_grid(tool: dict, dz_mm: float, n_z: int) -> EdgeGrid:
+    """Micro-edges at the engagement grid's levels z_k = (k+0.5)·dz for ``tool`` (workflow dict)."""
+    radius = float(tool["diameter_mm"]) / 2
+    rc = corner_radius_mm(tool)
+    z = (np.arange(n_z) + 0.5) * dz_mm
+    _, kappa = envelope_at_height(radius, rc, z)
+    edges = np.arange(n_z + 1) * dz_mm
+    s = generator_length_mm(radius, rc, edges)
+    return EdgeGrid(z_mm=z, kappa_rad=kappa, ds_mm=np.diff(s),
+                    lag_deg=helix_lag_deg(radius, float(tool.get("helix_deg") or 0.0), z),
+                    radius_mm=radius, flutes=int(tool["flutes"]))
+
+
+def rotation_grid_deg(n_rot: int = DEFAULT_N_ROT) -> np.ndarray:
+    """Spindle angles θ_i = i·360/n_rot (deg) sampled over one revolution."""
+    return np.arange(n_rot) * (360.0 / n_rot)
+
+
+def flute_positions_deg(grid: EdgeGrid, rotation_deg) -> np.ndarray:
+    """φ (deg, in [0, 360)) of every micro-edge: shape (n_rot, flutes, n_z)."""
+    theta = np.asarray(rotation_deg, dtype=float)[:, None, None]
+    j = np.arange(grid.flutes)[None, :, None]
+    return np.mod(-theta - 360.0 * j / grid.flutes + grid.lag_deg[None, None, :], 360.0)
+
+
+def chip_thickness_mm(fz_mm: float, cos_phi, sin_kappa, rho_mm=None):
+    """Chip thickness of each flute, shape of ``cos_phi`` (…, flutes, n_z), with runout.
+
+    ``h_j = sin κ · max(0, min_m (m·fz·cos φ + ρ_j − ρ_{j−m}))``; without runout h = fz·cos φ·sin κ
+    clipped at 0.
+    """
+    cos_phi = np.asarray(cos_phi, dtype=float)
+    if rho_mm is None or not np.any(rho_mm):
+        return np.maximum(fz_mm * cos_phi, 0.0) * sin_kappa
+    n = len(rho_mm)
+    j = np.arange(n)
+    best = None
+    for m in range(1, n + 1):
+        delta = rho_mm[j] - rho_mm[(j - m) % n]                      # (flutes,)
+        cand = m * fz_mm * cos_phi + delta[:, None]
+        best = cand if best is None else np.minimum(best, cand)
+    return np.maximum(best, 0.0) * sin_kappa
+
+
+def edge_force_components(cos_phi, sin_phi, kappa_rad, ds_mm, h_mm, coeffs: dict):
+    """Feed-frame (Fx, Fy, Fz) on the tool of micro-edges with chip h (0 = not cutting).
+
+    Returns an array with a trailing axis of 3.
+    """
+    cutting = h_mm > 1e-12        # a chip thinner than this is a rounding remnant at ψ = 0 or 180°
+    edge = ds_mm * cutting
+    hdb = h_mm * ds_mm
+    ft = coeffs["ktc"] * hdb + coeffs.get("kte", 0.0) * edge
+    fr = coeffs["krc"] * hdb + coeffs.get("kre", 0.0) * edge
+    fa = coeffs["kac"] * hdb + coeffs.get("kae", 0.0) * edge
+    sk, ck = np.sin(kappa_rad), np.cos(kappa_rad)
+    fx = -fr * sk * cos_phi - ft * sin_phi - fa * ck * cos_phi
+    fy = -fr * sk * sin_phi + ft * cos_phi - fa * ck * sin_phi
+    fz = fr * ck - fa * sk
+    return np.stack([fx, fy, fz], axis=-1)
+
+
+def force_weights(grid: EdgeGrid, n_phi: int, fz_mm: float, coeffs: dict, rotation_deg,
+                  runout_um: float = 0.0):
+    """Force of each micro-edge if its cell is engaged, and the cell it reads.
+
+    Returns
+    -------
+    weights : ndarray (n_rot, flutes·n_z, 3)
+        Feed-frame force on the tool (N) of flute j, level k at spindle angle θ_i, to be counted
+        when the engagement cell ``cells[i, j·n_z + k]`` is True.
+    cells : ndarray of int (n_rot, flutes·n_z)
+        Flat index k·n_phi + (bin of φ) into the raveled engagement grid.
+    """
+    phi = flute_positions_deg(grid, rotation_deg)                   # (n_rot, N, n_z)
+    phi_rad = np.radians(phi)
+    cos_phi, sin_phi = np.cos(phi_rad), np.sin(phi_rad)
+    rho = flute_offsets_mm(grid.flutes, runout_um)
+    h = chip_thickness_mm(fz_mm, cos_phi, np.sin(grid.kappa_rad), rho)
+    f = edge_force_components(cos_phi, sin_phi, grid.kappa_rad, grid.ds_mm, h, coeffs)
+    bins = np.minimum((phi * (n_phi / 360.0)).astype(np.int64), n_phi - 1)
+    cells = np.arange(len(grid.z_mm))[None, None, :] * n_phi + bins
+    n_rot = phi.shape[0]
+    return f.reshape(n_rot, -1, 3), cells.reshape(n_rot, -1)
+
+
+def _gather_matmul(engaged_flat: np.ndarray, cells: np.ndarray, weights: np.ndarray,
+                   chunk: int = 512) -> np.ndarray:
+    """F[p, i, :] = Σ_m E[p, cells[i, m]]·W[i, m, :], chunked over passes; returns (P, n_rot, C)."""
+    n_pass = engaged_flat.shape[0]
+    n_rot, n_m, n_c = weights.shape
+    out = np.empty((n_pass, n_rot, n_c))
+    wt = np.ascontiguousarray(weights.transpose(0, 2, 1), dtype=np.float32)   # (n_rot, C, M)
+    for s in range(0, n_pass, chunk):
+        et = np.ascontiguousarray(engaged_flat[s:s + chunk].T)                  # (cells, p)
+        g = et[cells].astype(np.float32)                                     # (n_rot, M, p)
+        out[s:s + chunk] = np.matmul(wt, g).transpose(2, 0, 1)
+    return out
+
+
+def cutting_forces(engaged: np.ndarray, dz_mm: float, fz_mm, tool: dict, coeffs: dict,
+                   rotation_deg=None) -> np.ndarray:
+    """Forces on the tool over one revolution for passes sharing one engagement grid.
+
+    Parameters
+    ----------
+    engaged : bool ndarray (P, n_z, n_phi)
+        Cutting region per pass (see module docstring).
+    dz_mm : float
+        Level spacing of the grid.
+    fz_mm : float or ndarray (P,)
+        Feed per tooth of each pass.
+    tool : dict
+        Workflow tool (type, diameter_mm, flutes, helix_deg, corner_radius_mm, runout_um).
+    coeffs : dict
+        ktc, krc, kac (N/mm²), kte, kre, kae (N/mm).
+    rotation_deg : array_like, optional
+        Spindle angles; default ``rotation_grid_deg(128)``.
+
+    Returns
+    -------
+    ndarray (P, n_rot, 3)
+        Fx, Fy, Fz on the tool in the **feed frame** (N); see ``to_machine_frame``.
+    """
+    engaged = np.asarray(engaged, dtype=bool)
+    n_pass, n_z, n_phi = engaged.shape
+    theta = rotation_grid_deg() if rotation_deg is None else np.asarray(rotation_deg, dtype=float)
+    fz = np.broadcast_to(np.asarray(fz_mm, dtype=float), (n_pass,))
+    if np.any(fz <= 0):
+        raise ValueError("feed per tooth must be > 0")
+    out = np.zeros((n_pass, len(theta), 3))
+    if n_pass == 0:
+        return out
+    # only levels engaged somewhere in this batch cost anything (finishing cuts touch a thin band)
+    active = np.flatnonzero(engaged.any(axis=(0, 2)))
+    if active.size == 0:
+        return out
+    full = edge_grid(tool, dz_mm, n_z)
+    grid = EdgeGrid(full.z_mm[active], full.kappa_rad[active], full.ds_mm[active],
+                    full.lag_deg[active], full.radius_mm, full.flutes)
+    flat = engaged[:, active, :].reshape(n_pass, -1)
+    runout = float(tool.get("runout_um") or 0.0)
+    if runout == 0.0:
+        # without runout the force is linear in fz: F = fz·F(cutting, fz=1) + F(edge)
+        cut = {k: coeffs.get(k, 0.0) for k in ("ktc", "krc", "kac")}
+        w_c, cells = force_weights(grid, n_phi, 1.0, {**cut, "kte": 0, "kre": 0, "kae": 0}, theta)
+        w_e, _ = force_weights(grid, n_phi, 1.0, {"ktc": 0, "krc": 0, "kac": 0,
+                                                  "kte": coeffs.get("kte", 0.0),
+                                                  "kre": coeffs.get("kre", 0.0),
+                                                  "kae": coeffs.get("kae", 0.0)}, theta)
+        both = _gather_matmul(flat, cells, np.concatenate([w_c, w_e], axis=2))
+        return fz[:, None, None] * both[..., :3] + both[..., 3:]
+    # with runout the chip is piecewise in fz: one weight set per distinct feed per tooth
+    uniq, inv = np.unique(fz, return_inverse=True)
+    for u, value in enumerate(uniq):
+        sel = np.flatnonzero(inv == u)
+        w, cells = force_weights(grid, n_phi, float(value), coeffs, theta, runout)
+        out[sel] = _gather_matmul(flat[sel], cells, w)
+    return out
+
+
+def to_machine_frame(forces_feed: np.ndarray, feed_dir_x, feed_dir_y) -> np.ndarray:
+    """Rotate (…, 3) feed-frame vectors of each pass to the machine frame.
+
+    ``feed_dir`` is the unit feed direction in machine x, y (P,); x_f ↦ (cx, cy), y_f ↦ (−cy, cx).
+    """
+    c = np.asarray(feed_dir_x, dtype=float)
+    s = np.asarray(feed_dir_y, dtype=float)
+    norm = np.hypot(c, s)
+    norm = np.where(norm > 0, norm, 1.0)
+    c, s = (c / norm)[:, None], (s / norm)[:, None]
+    out = np.empty_like(forces_feed)
+    out[..., 0] = c * forces_feed[..., 0] - s * forces_feed[..., 1]
+    out[..., 1] = s * forces_feed[..., 0] + c * forces_feed[..., 1]
+    out[..., 2] = forces_feed[..., 2]
+    return out
+
+
+def feed_per_tooth_mm(feed_mm_min, spindle_rpm, flutes: int):
+    """fz = F / (S·N)."""
+    return np.asarray(feed_mm_min, dtype=float) / (np.asarray(spindle_rpm, dtype=float) * flutes)
