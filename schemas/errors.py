@@ -1,13 +1,18 @@
 import pyarrow as pa
 
 # DESIGN §6 minimum columns for `errors`; the stage that fills it may add more here.
+# err_um = err_deflection_um + err_runout_um + err_shape_um, positive = material left (DESIGN §5).
 SCHEMA = pa.schema([
     pa.field('program_id', pa.string()),
     pa.field('pass_id', pa.int32()),
-    pa.field('err_deflection_um', pa.float64()),
-    pa.field('err_shape_um', pa.float64()),
+    pa.field('err_deflection_um', pa.float64()),   # (dx, dy, 0)(θ_C)·n
+    pa.field('err_shape_um', pa.float64()),        # tool profile table at contact_deg
     pa.field('err_um', pa.float64()),
     pa.field('nx', pa.float64()),
     pa.field('ny', pa.float64()),
     pa.field('nz', pa.float64()),
+    pa.field('err_runout_um', pa.float64()),       # −ρ_flute·sin q of the generating flute
+    pa.field('contact_deg', pa.float64()),         # q at the generating point C
+    pa.field('spindle_deg', pa.float64()),         # spindle angle θ_C at which deflection was read
+    pa.field('flute', pa.int32()),                 # flute that generated C (the deepest cut)
 ])

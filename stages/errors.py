@@ -1,0 +1,281 @@
+"""Stage ``errors``: machining error at each predicted pass (DESIGN §5, §7; seed 000 paras 0072–0073).
+
+For the generating point C of a pass (``generating``: φ_C, q_C, n_C) and each flute j::
+
+    e_j = (dx, dy, 0)(θ_Cj)·n_C  −  ρ_j·sin q_C          (µm)
+    err = min_j e_j + shape_error(q_C)
+
+- θ_Cj is the spindle angle at which flute j passes φ_C at C's height z_C (``cutting.spindle_angle_at``:
+  φ_j(θ, z) = −θ − 360·j/N + z·tan β/R for a clockwise spindle); the deflection over one revolution is
+  read there (periodic linear interpolation).
+- Sign: n points out of the material (into air) and the deflection is that of the tool, along the
+  force acting on the tool. A tool pushed away from the wall (d·n > 0) cuts less: material left,
+  positive error, as DESIGN §5 wants.
+- Runout: flute j turns on radius R + ρ_j (ρ_j = e·cos(2πj/N), ``cutting.flute_offsets_mm``); moving
+  the edge out by ρ_j along the tool radius moves the surface into the material by ρ_j·sin q.
+- The surface left is that of the flute that cuts deepest: the minimum over flutes.
+- Shape error: the tool profile table (claim 2, ``tool.profile``: CSV ``contact_deg,error_um``,
+  error_um > 0 = the tool is smaller than nominal there = material left), linearly interpolated at
+  q_C and held constant beyond its first/last row.
+
+The height z_C of C above the tip (it sets the helix lag): on the corner (q < 90°) z_C = rc(1 − cos q);
+on the cylindrical side (q = 90°, and always for a flat end mill) z_C = gen_z − tip z of the pass at
+the point nearest C.
+"""
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+
+from stages import InputError
+from stages import cutting
+from stages.forces import list_values, match_passes, pick_entry, program_tool_number
+
+NAME = "errors"
+VERSION = "1"
+INPUTS = ("passes", "generating", "deflection")
+OUTPUTS = ("errors",)
+PARAMS = ("tool",)
+
+
+# --------------------------------------------------------------------------------------------
+# tool profile table (claim 2)
+# --------------------------------------------------------------------------------------------
+@functools.lru_cache(maxsize=16)
+def _read_profile_cached(path: str, mtime: float):
+    lines = Path(path).read_text().splitlines()
+    if not lines:
+        raise InputError(f"{path}:1: empty tool profile (expected header contact_deg,error_um)")
+    header = [h.strip().lower() for h in lines[0].split(",")]
+    if "contact_deg" not in header or "error_um" not in header:
+        raise InputError(f"{path}:1: tool profile header must name contact_deg and error_um, got {lines[0]!r}")
+    iq, ie = header.index("contact_deg"), header.index("error_um")
+    q, e = [], []
+    for n, line in enumerate(lines[1:], start=2):
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        parts = line.split(",")
+        try:
+            q.append(float(parts[iq]))
+            e.append(float(parts[ie]))
+        except (ValueError, IndexError):
+            raise InputError(f"{path}:{n}: expected numbers contact_deg,error_um, got {line!r}") from None
+    if not q:
+        raise InputError(f"{path}: tool profile has no rows")
+    q, e = np.array(q), np.array(e)
+    if np.any(np.diff(q) <= 0):
+        raise InputError(f"{path}: contact_deg must be strictly ascending")
+    return q, e
+
+
+def read_profile(path) -> tuple[np.ndarray, np.ndarray]:
+    """Read a tool profile CSV (contact_deg, error_um) → (q_deg, error_um) ascending."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"tool.profile: no such file {path}")
+    return _read_profile_cached(str(p.resolve()), p.stat().st_mtime)
+
+
+def shape_error_um(contact_deg, profile) -> np.ndarray:
+    """Tool shape error (µm, + = material left) at contact angles q; 0 when ``profile`` is None."""
+    q = np.asarray(contact_deg, dtype=float)
+    if profile is None:
+        return np.zeros_like(q)
+    pq, pe = profile
+    return np.interp(q, pq, pe)
+
+
+# --------------------------------------------------------------------------------------------
+# kernel
+# --------------------------------------------------------------------------------------------
+def periodic_interp(values: np.ndarray, theta_deg: np.ndarray) -> np.ndarray:
+    """Linear interpolation of (P, n) samples at θ_i = i·360/n, at angles ``theta_deg`` (P, …)."""
+    n = values.shape[1]
+    pos = np.mod(theta_deg, 360.0) * (n / 360.0)
+    i0 = np.floor(pos).astype(np.int64)
+    w = pos - i0
+    i0 %= n
+    i1 = (i0 + 1) % n
+    rows = np.arange(values.shape[0]).reshape((-1,) + (1,) * (theta_deg.ndim - 1))
+    return (1 - w) * values[rows, i0] + w * values[rows, i1]
+
+
+def machining_error(dx_um, dy_um, phi_c_deg, contact_deg, normal, z_c_mm, tool: dict, profile=None):
+    """Error at the generating point of each pass (see module docstring).
+
+    Parameters
+    ----------
+    dx_um, dy_um : ndarray (P, n_rot)
+        Tool deflection over one revolution at θ_i = i·360/n_rot, machine frame.
+    phi_c_deg, contact_deg : ndarray (P,)
+        φ_C (feed frame, CCW from the feed) and q_C of the generating point.
+    normal : ndarray (P, 3)
+        Unit surface normal at C (out of the material), machine frame.
+    z_c_mm : ndarray (P,)
+        Height of C above the tool tip.
+    tool : dict
+        Workflow tool (flutes, helix_deg, diameter_mm, runout_um).
+    profile : (q_deg, error_um) or None
+
+    Returns
+    -------
+    dict of ndarray (P,): err_deflection_um, err_runout_um, err_shape_um, err_um, spindle_deg, flute
+    """
+    flutes = int(tool["flutes"])
+    radius = float(tool["diameter_mm"]) / 2
+    j = np.arange(flutes)
+    phi = np.asarray(phi_c_deg, dtype=float)
+    q = np.asarray(contact_deg, dtype=float)
+    n = np.asarray(normal, dtype=float)
+    theta = cutting.spindle_angle_at(phi[:, None], np.asarray(z_c_mm, float)[:, None], j[None, :],
+                                     flutes, radius, float(tool.get("helix_deg") or 0.0))  # (P, N)
+    e_def = periodic_interp(np.asarray(dx_um, float), theta) * n[:, 0:1] \
+        + periodic_interp(np.asarray(dy_um, float), theta) * n[:, 1:2]
+    rho_um = cutting.flute_offsets_mm(flutes, float(tool.get("runout_um") or 0.0)) * 1e3
+    e_run = -rho_um[None, :] * np.sin(np.radians(np.clip(q, 0.0, 90.0)))[:, None]
+    total = e_def + e_run
+    # the deepest flute leaves the surface; NaN rows (no generating point) stay NaN
+    best = np.argmin(np.where(np.isnan(total), np.inf, total), axis=1)
+    rows = np.arange(len(best))
+    shape = shape_error_um(q, profile)
+    return {
+        "err_deflection_um": e_def[rows, best],
+        "err_runout_um": e_run[rows, best],
+        "err_shape_um": shape,
+        "err_um": total[rows, best] + shape,
+        "spindle_deg": theta[rows, best],
+        "flute": best.astype(np.int32),
+    }
+
+
+def contact_height_mm(tool: dict, contact_deg, gen_z_mm, tip_z_mm) -> np.ndarray:
+    """Height of the generating point above the tip: on the corner from q, on the side from z."""
+    rc = cutting.corner_radius_mm(tool)
+    q = np.asarray(contact_deg, dtype=float)
+    on_side = ~(q < 89.999) | (rc <= 0)
+    side = np.maximum(np.asarray(gen_z_mm, float) - np.asarray(tip_z_mm, float), rc)
+    return np.where(on_side, side, cutting.corner_height_mm(rc, q))
+
+
+def tip_z_nearest(passes: pa.Table, rows: np.ndarray, gen_xyz: np.ndarray) -> np.ndarray:
+    """Tip z of each pass at the point of its segment nearest the generating point."""
+    p0 = np.stack([passes.column(c).to_numpy()[rows] for c in ("x0_mm", "y0_mm", "z0_mm")], axis=1)
+    p1 = np.stack([passes.column(c).to_numpy()[rows] for c in ("x1_mm", "y1_mm", "z1_mm")], axis=1)
+    seg = p1 - p0
+    ll = np.einsum("ij,ij->i", seg, seg)
+    t = np.where(ll > 0, np.einsum("ij,ij->i", gen_xyz - p0, seg) / np.where(ll > 0, ll, 1), 0.0)
+    t = np.clip(t, 0.0, 1.0)
+    return p0[:, 2] + t * seg[:, 2]
+
+
+def run(inputs: dict, params: dict) -> dict:
+    from schemas.errors import SCHEMA
+    passes, gen, defl = inputs["passes"], inputs["generating"], inputs["deflection"]
+    if gen.num_rows == 0:
+        return {"errors": SCHEMA.empty_table()}
+    tool = pick_entry(params.get("tool"), program_tool_number(passes), "tool")
+    profile = read_profile(tool["profile"]) if tool.get("profile") else None
+
+    pass_ids = gen.column("pass_id").to_numpy().astype(np.int64)
+    rows = match_passes(passes, pass_ids, "generating")
+    # deflection row of each generating row (missing → NaN deflection error)
+    d_ids = defl.column("pass_id").to_numpy().astype(np.int64) if defl.num_rows else np.zeros(0, np.int64)
+    order = np.argsort(d_ids, kind="stable")
+    pos = np.searchsorted(d_ids[order], pass_ids) if len(d_ids) else np.zeros(len(pass_ids), np.int64)
+    pos = np.minimum(pos, max(len(d_ids) - 1, 0))
+    have = (d_ids[order][pos] == pass_ids) if len(d_ids) else np.zeros(len(pass_ids), bool)
+    if len(d_ids):
+        dx = list_values(defl.column("dx_um"), "deflection.dx_um")[order[pos]]
+        dy = list_values(defl.column("dy_um"), "deflection.dy_um")[order[pos]]
+        dx[~have] = np.nan
+        dy[~have] = np.nan
+    else:
+        dx = dy = np.full((len(pass_ids), cutting.DEFAULT_N_ROT), np.nan)
+
+    col = lambda c: gen.column(c).to_numpy(zero_copy_only=False).astype(float)  # noqa: E731
+    gen_xyz = np.stack([col("gen_x_mm"), col("gen_y_mm"), col("gen_z_mm")], axis=1)
+    normal = np.stack([col("nx"), col("ny"), col("nz")], axis=1)
+    q = col("contact_deg")
+    z_c = contact_height_mm(tool, q, gen_xyz[:, 2], tip_z_nearest(passes, rows, gen_xyz))
+    res = machining_error(dx, dy, col("rotation_deg"), q, normal, z_c, tool, profile)
+    table = pa.table({
+        "program_id": gen.column("program_id"),
+        "pass_id": pa.array(pass_ids.astype(np.int32)),
+        "err_deflection_um": res["err_deflection_um"],
+        "err_shape_um": res["err_shape_um"],
+        "err_um": res["err_um"],
+        "nx": normal[:, 0], "ny": normal[:, 1], "nz": normal[:, 2],
+        "err_runout_um": res["err_runout_um"],
+        "contact_deg": q,
+        "spindle_deg": res["spindle_deg"],
+        "flute": res["flute"],
+    })
+    return {"errors": table}
+
+
+# --------------------------------------------------------------------------------------------
+# analytic benchmark: error vs contact angle on a wall finished by a ball end mill (seed Fig. 19)
+# --------------------------------------------------------------------------------------------
+def wall_engagement(radius_mm: float, contact_deg: float, step_mm: float, stock_mm: float,
+                    n_z: int = 64, n_phi: int = 360) -> tuple[np.ndarray, float]:
+    """Cutting region of a ball end mill finishing a wall inclined at q (analytic, no rendering).
+
+    Feed along +x (feed frame = machine frame); the wall is on the right of the feed (φ = −90°,
+    down milling with M3), tangent to the ball at contact angle q. The material before the pass is
+    everything within ``stock_mm`` of the nominal wall, minus the groove of the previous pass, whose
+    ball centre lies ``step_mm`` up along the wall. Only the front half cuts (the back half is in the
+    groove of the previous tooth).
+
+    Returns
+    -------
+    engaged : bool (n_z, n_phi), dz_mm : float
+    """
+    R = float(radius_mm)
+    q = np.radians(contact_deg)
+    dz = R / n_z                                   # levels over the ball only
+    z = (np.arange(n_z) + 0.5) * dz
+    phi = np.radians((np.arange(n_phi) + 0.5) * 360.0 / n_phi)
+    r, _ = cutting.envelope_at_height(R, R, z)
+    u = -r[:, None] * np.sin(phi)[None, :]         # toward the wall
+    w = (z - R)[:, None] * np.ones_like(phi)[None, :]
+    depth = -u * np.sin(q) + w * np.cos(q) + R     # distance of the point from the nominal wall, into the material is < 0… ≥ 0 on the ball
+    in_stock = depth < stock_mm
+    cu, cw = step_mm * np.cos(q), step_mm * np.sin(q)
+    outside_prev = (u - cu) ** 2 + (w - cw) ** 2 > R * R
+    front = np.cos(phi)[None, :] > 0
+    return in_stock & outside_prev & front, dz
+
+
+def error_vs_contact_angle(contact_deg, tool: dict, material: dict, frf: dict, feed_mm_min: float,
+                           spindle_rpm: float, step_mm: float = 0.3, stock_mm: float = 0.1,
+                           n_z: int = 64, n_phi: int = 360, profile=None) -> dict:
+    """Predicted error on walls inclined at each contact angle q, ball end mill (seed Fig. 19 check).
+
+    Chains the analytic cutting region (``wall_engagement``), the force model, the FFT deflection
+    and ``machining_error`` with C at φ = −90°, q, normal (0, sin q, cos q).
+    """
+    from stages import frf as frf_mod
+    if tool["type"] != "ball":
+        raise ValueError("error_vs_contact_angle models a ball end mill")
+    qs = np.atleast_1d(np.asarray(contact_deg, dtype=float))
+    R = float(tool["diameter_mm"]) / 2
+    grids = []
+    for qd in qs:
+        e, dz = wall_engagement(R, qd, step_mm, stock_mm, n_z, n_phi)
+        grids.append(e)
+    engaged = np.stack(grids)
+    fz = cutting.feed_per_tooth_mm(feed_mm_min, spindle_rpm, int(tool["flutes"]))
+    coeffs = {k: float(material.get(k) or 0.0) for k in cutting.COEFF_NAMES}
+    f = cutting.cutting_forces(engaged, dz, fz, tool, coeffs)
+    rpm = np.full(len(qs), float(spindle_rpm))
+    d = frf_mod.tool_deflection(f, rpm, frf)
+    qr = np.radians(qs)
+    normal = np.stack([np.zeros_like(qr), np.sin(qr), np.cos(qr)], axis=1)
+    res = machining_error(d[..., 0], d[..., 1], np.full(len(qs), -90.0), qs, normal,
+                          cutting.corner_height_mm(R, qs), tool, profile)
+    res["contact_deg"] = qs
+    res["forces_n"] = f
+    return res
