@@ -88,7 +88,8 @@ def tool_profile_command(images_dir, um_per_px, diameter_mm, tool_type="ball", o
         "fit": {
             "ideal": "circle of nominal radius" if tool_type == "ball" else "corner arcs of nominal radius",
             "reference": reference if centre_z_px is None else f"fixed centre row {centre_z_px:g} px",
-            "method": "normal rays every 0.1°, 50 % crossing, robust (Huber) least-squares centre",
+            "method": "normal rays every 0.1°, 50 % crossing refined by edge area with local levels, "
+                      "robust (Huber) least-squares centre",
             "diameter_um_mean": float(np.mean([m["diameter_um"] for m in measurements])),
             "radius_fit_um_mean": float(np.mean([m["radius_fit_um"] for m in measurements])),
         },
@@ -98,8 +99,10 @@ def tool_profile_command(images_dir, um_per_px, diameter_mm, tool_type="ball", o
     out_csv.parent.mkdir(parents=True, exist_ok=True)
     tmp = {p: p.with_name(f".{p.name}.tmp{os.getpid()}") for p in (out_csv, out_json, out_png)}
     try:
-        profile.to_csv(tmp[out_csv], index=False, float_format="%.4f")
-        tmp[out_json].write_text(json.dumps(summary, indent=1, ensure_ascii=False))
+        table = profile.copy()
+        table["contact_deg"] = table["contact_deg"].map("{:.1f}".format)
+        table.to_csv(tmp[out_csv], index=False, float_format="%.4f")
+        tmp[out_json].write_text(_json_text(summary))
         _overlay_png(tmp[out_png], tp.load_image(paths[0])[0], measurements[0], profile, summary)
         for final, t in tmp.items():
             os.replace(t, final)
@@ -110,6 +113,15 @@ def tool_profile_command(images_dir, um_per_px, diameter_mm, tool_type="ball", o
     result = {k: v for k, v in summary.items() if k != "envelope"}
     result.update(csv=str(out_csv), json=str(out_json), png=str(out_png))
     return result
+
+
+def _json_text(summary):
+    """Indented JSON, with the 901-long envelope arrays kept on one line each."""
+    env = summary["envelope"]
+    text = json.dumps({**summary, "envelope": "@ENVELOPE@"}, indent=1, ensure_ascii=False)
+    inline = ('{"contact_deg": ' + json.dumps(env["contact_deg"]) + ',\n  "error_um": '
+              + json.dumps(env["error_um"]) + "}")
+    return text.replace('"@ENVELOPE@"', inline) + "\n"
 
 
 def _overlay_png(path, grey, m0, profile, summary):

@@ -13,11 +13,16 @@ downward tool axis and the contour point, 0° tip, 90° equator, grid 0–90° i
 
 How the edge is found. Row scans lose accuracy where the edge is nearly horizontal (the tip), so
 the edge is sampled along the normal of the ideal profile instead: one ray per contact angle and
-side from the (corner) centre, intensity interpolated bilinearly (``cv2.remap``) every 0.25 px,
-edge = the first crossing, walking outward from inside the tool, of the 50 % level between the
-dark and bright levels read at the two ends of that ray (local levels absorb vignetting). The
-centre is fitted by robust least squares (Huber IRLS) on these points with the nominal radius
-and the rays resampled from the new centre until it moves less than 0.005 px.
+side from the (corner) centre, intensity interpolated bicubically (``cv2.remap``) every 0.25 px.
+The edge is first the crossing, walking outward from inside the tool (dust in the background
+does not matter), of the 50 % level between the dark and bright ends of the ray; it is then
+refined by area: the integral of the normalised darkness over ±3 px, with the dark and bright
+levels read 3–8 px either side, equals the distance to the edge for any symmetric blur and for
+pixel integration, so it carries neither the sub-pixel-phase bias of an interpolated crossing
+(up to ~0.1 px, not averaged where the phase is stationary: tip and equator) nor the bias of a
+back-light that falls off along the ray (vignetting). The centre is fitted by robust least
+squares (Huber IRLS) on these points with the nominal radius and the rays resampled from the
+new centre until it moves less than 0.005 px.
 """
 from __future__ import annotations
 
@@ -452,7 +457,8 @@ def eccentricity(axis_um, angles_deg) -> dict:
     Returns
     -------
     dict
-        eccentricity_um (None for one image), phase_deg, spindle_axis_um (a), residual_um (RMS),
+        eccentricity_um (None for one image), phase_deg (θ0: the spindle angle at which the tool
+        axis is seen furthest to the image's right), spindle_axis_um (a), residual_um (RMS),
         lower_bound (True when fewer than 3 distinct angles fix the sinusoid).
     """
     x = np.asarray(axis_um, dtype=float)
@@ -673,7 +679,7 @@ def composite_profile(tool_profile_df, points_xyz, deviation_um, normals, *, ban
 
     Parameters
     ----------
-    tool_profile_df : DataFrame
+    tool_profile_df : DataFrame or path of a profile CSV
         contact_deg, error_um: the first error (CV2), e.g. from :func:`measure_tool`.
     points_xyz : (n, 3) float
         Measured points (mm); only checked (the contact angle depends on the normal alone).
@@ -704,6 +710,8 @@ def composite_profile(tool_profile_df, points_xyz, deviation_um, normals, *, ban
         n_eff, in_transition. ``attrs``: transitions (list of X1/X2 regions, see
         :func:`find_transitions`), n_points, n_dropped.
     """
+    if isinstance(tool_profile_df, (str, Path)):
+        tool_profile_df = pd.read_csv(tool_profile_df)
     first = _on_grid(tool_profile_df, "error_um", "tool_profile")
     p = np.asarray(points_xyz, dtype=float)
     d = np.asarray(deviation_um, dtype=float)

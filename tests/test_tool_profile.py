@@ -382,3 +382,29 @@ def test_composite_closed_loop_removes_the_left_material():
           f"max |err| {np.abs(cut1).max():.3f} → {np.abs(cut2).max():.3f} µm")
     assert abs(cut2[at45][0]) <= 0.1
     assert np.abs(cut2).max() <= 0.3 < np.abs(cut1).max()
+
+
+def test_16bit_colour_images_and_angles_from_name_order(tmp_path):
+    """16-bit and colour files load as grey; without angles in the names the images are taken
+    as evenly spaced over a turn (here 0, 120, 240° as rendered)."""
+    d = tmp_path / "imgs"
+    d.mkdir()
+    for k, a in enumerate([0.0, 120.0, 240.0]):
+        im = render(lambda q: R_PX - dent_um(q), xc=XC + 5.0 * np.cos(np.radians(a)), seed=200 + k)
+        if k == 0:
+            im = (im.astype(np.uint16) * 257)
+        elif k == 1:
+            im = cv2.cvtColor(im, cv2.COLOR_GRAY2BGR)
+        cv2.imwrite(str(d / f"img{k}.png"), im)
+    paths = tp.list_images(d)
+    angles, source = tp.spindle_angles(paths)
+    np.testing.assert_allclose(angles, [0.0, 120.0, 240.0])
+    assert source == "assumed evenly spaced"
+    assert tp.load_image(paths[0])[1] == 65535.0
+    res = tool_profile_command(d, UM_PER_PX, D_MM, "ball", tmp_path / "p.csv")
+    assert abs(res["eccentricity_um"] - 5.0) <= 1.0
+    assert abs((res["eccentricity"]["phase_deg"] + 180) % 360 - 180) <= 5.0
+    mixed = d / "t1_090deg.png"
+    cv2.imwrite(str(mixed), render(lambda q: R_PX + 0 * q))
+    with pytest.raises(InputError, match="img0.png: no spindle angle"):
+        tp.spindle_angles(tp.list_images(d))
