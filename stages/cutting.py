@@ -283,18 +283,31 @@ def force_weights(grid: EdgeGrid, n_phi: int, fz_mm: float, coeffs: dict, rotati
     return f.reshape(n_rot, -1, 3), cells.reshape(n_rot, -1)
 
 
-def _gather_matmul(engaged_flat: np.ndarray, cells: np.ndarray, weights: np.ndarray,
-                   chunk: int = 512) -> np.ndarray:
-    """F[p, i, :] = Σ_m E[p, cells[i, m]]·W[i, m, :], chunked over passes; returns (P, n_rot, C)."""
-    n_pass = engaged_flat.shape[0]
-    n_rot, n_m, n_c = weights.shape
-    out = np.empty((n_pass, n_rot, n_c))
-    wt = np.ascontiguousarray(weights.transpose(0, 2, 1), dtype=np.float32)   # (n_rot, C, M)
+def _gather_matmul(packed: np.ndarray, cells: np.ndarray, weights: np.ndarray, out: np.ndarray,
+                   rows=None, fz=None, chunk: int = 1024) -> None:
+    """out[c, p, i] = Σ_m E[p, cells[i, m]]·W[i, m, c] straight from packed bits, chunked over passes.
+
+    ``packed`` is (P, n_bytes) uint8 (``np.packbits`` of the raveled grids). The grid is never
+    unpacked: the byte holding each cell is gathered and its bit kept with a mask; the weights are
+    divided by the mask value so that (byte & mask)·W/mask = bit·W. ``out`` is (3, P_all, n_rot),
+    written at ``rows`` (default all). With ``fz`` given, W has 6 components (cutting per unit fz,
+    then edge) and out = fz·cutting + edge.
+    """
+    n_pass = packed.shape[0]
+    rows = np.arange(n_pass) if rows is None else np.asarray(rows)
+    byte = cells >> 3
+    mask = (1 << (7 - (cells & 7))).astype(np.uint8)                          # (n_rot, M)
+    wt = weights / mask[..., None].astype(float)
+    wt = np.ascontiguousarray(wt.transpose(0, 2, 1), dtype=np.float32)         # (n_rot, C, M)
+    mask3 = mask[:, :, None]
     for s in range(0, n_pass, chunk):
-        et = np.ascontiguousarray(engaged_flat[s:s + chunk].T)                  # (cells, p)
-        g = et[cells].astype(np.float32)                                     # (n_rot, M, p)
-        out[s:s + chunk] = np.matmul(wt, g).transpose(2, 0, 1)
-    return out
+        pt = np.ascontiguousarray(packed[s:s + chunk].T)                       # (n_bytes, p)
+        g = pt[byte]                                                           # (n_rot, M, p)
+        np.bitwise_and(g, mask3, out=g)
+        f = np.matmul(wt, g.astype(np.float32)).transpose(1, 2, 0)             # (C, p, n_rot)
+        if fz is not None:
+            f = fz[None, s:s + chunk, None] * f[:3] + f[3:]
+        out[:, rows[s:s + chunk], :] = f
 
 
 def cutting_forces(engaged: np.ndarray, dz_mm: float, fz_mm, tool: dict, coeffs: dict,
@@ -319,42 +332,61 @@ def cutting_forces(engaged: np.ndarray, dz_mm: float, fz_mm, tool: dict, coeffs:
     Returns
     -------
     ndarray (P, n_rot, 3)
-        Fx, Fy, Fz on the tool in the **feed frame** (N); see ``to_machine_frame``.
+        Fx, Fy, Fz on the tool in the **feed frame** (N); see ``to_machine_frame``. (A view of a
+        (3, P, n_rot) array: ``F[..., c]`` is contiguous.)
     """
     engaged = np.asarray(engaged, dtype=bool)
     n_pass, n_z, n_phi = engaged.shape
+    packed = np.packbits(engaged.reshape(n_pass, -1), axis=1)
+    return cutting_forces_packed(packed, n_z, n_phi, dz_mm, fz_mm, tool, coeffs, rotation_deg)
+
+
+def cutting_forces_packed(packed: np.ndarray, n_z: int, n_phi: int, dz_mm: float, fz_mm, tool: dict,
+                          coeffs: dict, rotation_deg=None) -> np.ndarray:
+    """``cutting_forces`` on grids given as packed bits (P, ceil(n_z·n_phi/8)) uint8, the form the
+    ``engagement`` table stores; memory stays O(chunk), whatever P and the grid size."""
+    packed = np.asarray(packed, dtype=np.uint8)
+    n_pass = packed.shape[0]
+    if packed.ndim != 2 or packed.shape[1] != (n_z * n_phi + 7) // 8:
+        raise ValueError(f"packed grids must be (P, {(n_z * n_phi + 7) // 8}) bytes for {n_z}×{n_phi} cells")
     theta = rotation_grid_deg() if rotation_deg is None else np.asarray(rotation_deg, dtype=float)
-    fz = np.broadcast_to(np.asarray(fz_mm, dtype=float), (n_pass,))
-    if np.any(fz <= 0):
+    fz = np.ascontiguousarray(np.broadcast_to(np.asarray(fz_mm, dtype=float), (n_pass,)))
+    if np.any(~(fz > 0)):
         raise ValueError("feed per tooth must be > 0")
-    out = np.zeros((n_pass, len(theta), 3))
+    comp = np.zeros((3, n_pass, len(theta)))
+    out = np.moveaxis(comp, 0, -1)            # (P, n_rot, 3) view; comp[c] stays contiguous
     if n_pass == 0:
         return out
-    # only levels engaged somewhere in this batch cost anything (finishing cuts touch a thin band)
-    active = np.flatnonzero(engaged.any(axis=(0, 2)))
+    # only levels engaged in some pass cost anything (finishing cuts touch a thin band)
+    union = np.unpackbits(np.bitwise_or.reduce(packed, axis=0), count=n_z * n_phi).reshape(n_z, n_phi)
+    active = np.flatnonzero(union.any(axis=1))
     if active.size == 0:
         return out
     full = edge_grid(tool, dz_mm, n_z)
     grid = EdgeGrid(full.z_mm[active], full.kappa_rad[active], full.ds_mm[active],
                     full.lag_deg[active], full.radius_mm, full.flutes)
-    flat = engaged[:, active, :].reshape(n_pass, -1)
+
+    def weights_for(fz_value, k):
+        w, cells_local = force_weights(grid, n_phi, fz_value, k, theta, runout)
+        # local level index → the level's row in the full grid
+        level = np.broadcast_to(np.tile(active, grid.flutes), cells_local.shape)
+        cells = level * n_phi + cells_local % n_phi
+        return w, cells
+
     runout = float(tool.get("runout_um") or 0.0)
     if runout == 0.0:
         # without runout the force is linear in fz: F = fz·F(cutting, fz=1) + F(edge)
-        cut = {k: coeffs.get(k, 0.0) for k in ("ktc", "krc", "kac")}
-        w_c, cells = force_weights(grid, n_phi, 1.0, {**cut, "kte": 0, "kre": 0, "kae": 0}, theta)
-        w_e, _ = force_weights(grid, n_phi, 1.0, {"ktc": 0, "krc": 0, "kac": 0,
-                                                  "kte": coeffs.get("kte", 0.0),
-                                                  "kre": coeffs.get("kre", 0.0),
-                                                  "kae": coeffs.get("kae", 0.0)}, theta)
-        both = _gather_matmul(flat, cells, np.concatenate([w_c, w_e], axis=2))
-        return fz[:, None, None] * both[..., :3] + both[..., 3:]
+        zero = {"ktc": 0.0, "krc": 0.0, "kac": 0.0, "kte": 0.0, "kre": 0.0, "kae": 0.0}
+        w_c, cells = weights_for(1.0, {**zero, **{k: coeffs.get(k, 0.0) for k in ("ktc", "krc", "kac")}})
+        w_e, _ = weights_for(1.0, {**zero, **{k: coeffs.get(k, 0.0) for k in ("kte", "kre", "kae")}})
+        _gather_matmul(packed, cells, np.concatenate([w_c, w_e], axis=2), comp, fz=fz)
+        return out
     # with runout the chip is piecewise in fz: one weight set per distinct feed per tooth
     uniq, inv = np.unique(fz, return_inverse=True)
     for u, value in enumerate(uniq):
-        sel = np.flatnonzero(inv == u)
-        w, cells = force_weights(grid, n_phi, float(value), coeffs, theta, runout)
-        out[sel] = _gather_matmul(flat[sel], cells, w)
+        sel = np.flatnonzero(inv.ravel() == u)
+        w, cells = weights_for(float(value), coeffs)
+        _gather_matmul(packed[sel], cells, w, comp, rows=sel)
     return out
 
 

@@ -36,15 +36,17 @@ def run(inputs: dict, params: dict, method: str = "fft") -> dict:
     n_rot = theta.shape[1]
     if not np.allclose(theta, np.arange(n_rot)[None, :] * (360.0 / n_rot)):
         raise InputError("forces.rotation_deg: expected uniform spindle angles i·360/n from 0")
-    fxy = np.stack([list_values(forces.column("fx_n"), "forces.fx_n"),
-                    list_values(forces.column("fy_n"), "forces.fy_n")], axis=-1)
+    fx = list_values(forces.column("fx_n"), "forces.fx_n")
+    fy = list_values(forces.column("fy_n"), "forces.fy_n")
     rpm = forces.column("spindle_rpm").to_numpy()
-    d = frf_mod.tool_deflection(fxy, rpm, frf, method=method)
+    if np.any(~(rpm > 0)):
+        raise InputError(f"forces: pass {forces.column('pass_id')[int(np.argmin(rpm > 0))]} has no spindle speed")
+    dx, dy = frf_mod.deflection_xy(fx, fy, rpm, frf, method=method)
     table = pa.table({
         "program_id": forces.column("program_id"),
         "pass_id": forces.column("pass_id"),
         "rotation_deg": forces.column("rotation_deg"),
-        "dx_um": list_column(d[..., 0]),
-        "dy_um": list_column(d[..., 1]),
+        "dx_um": list_column(dx),
+        "dy_um": list_column(dy),
     })
     return {"deflection": table}

@@ -81,6 +81,21 @@ def match_passes(passes: pa.Table, pass_ids: np.ndarray, table_name: str) -> np.
     return order[pos]
 
 
+def _mask_bytes(column):
+    """Binary column → ((P, L) uint8 when all rows are L bytes long, else a list of arrays), lengths."""
+    arr = column.combine_chunks() if isinstance(column, pa.ChunkedArray) else column
+    if arr.null_count:
+        raise InputError("engagement.mask: null mask")
+    n = len(arr)
+    bufs = arr.buffers()
+    offsets = np.frombuffer(bufs[1], dtype=np.int32)[arr.offset:arr.offset + n + 1]
+    data = np.frombuffer(bufs[2], dtype=np.uint8) if bufs[2] is not None else np.zeros(0, np.uint8)
+    lengths = np.diff(offsets)
+    if n and np.all(lengths == lengths[0]):
+        return data[offsets[0]:offsets[-1]].reshape(n, int(lengths[0])), lengths
+    return [data[offsets[i]:offsets[i + 1]] for i in range(n)], lengths
+
+
 def _empty():
     from schemas.forces import SCHEMA
     return SCHEMA.empty_table()
@@ -110,27 +125,43 @@ def run(inputs: dict, params: dict) -> dict:
     dz = engagement.column("dz_mm").to_numpy()
     n_z = engagement.column("n_z").to_numpy()
     n_phi = engagement.column("n_phi").to_numpy()
-    masks = engagement.column("mask").to_pylist()
+    packed, lengths = _mask_bytes(engagement.column("mask"))
     theta = cutting.rotation_grid_deg(N_ROT)
-    forces_feed = np.zeros((len(pass_ids), N_ROT, 3))
+    comp = np.zeros((3, len(pass_ids), N_ROT))
+    forces_feed = np.moveaxis(comp, 0, -1)
     keys = np.stack([dz, n_z.astype(float), n_phi.astype(float)], axis=1)
     uniq, inv = np.unique(keys, axis=0, return_inverse=True)
     for g, (g_dz, g_nz, g_nphi) in enumerate(uniq):
         sel = np.flatnonzero(inv.ravel() == g)
-        try:
-            grid = cutting.unpack_engagement([masks[i] for i in sel], int(g_nz), int(g_nphi))
-        except ValueError as e:
-            raise InputError(f"engagement: pass {pass_ids[sel[0]]}: {e}") from None
-        forces_feed[sel] = cutting.cutting_forces(grid, float(g_dz), fz[sel], tool, coeffs, theta)
-    f = cutting.to_machine_frame(forces_feed, engagement.column("feed_dir_x").to_numpy(),
-                                 engagement.column("feed_dir_y").to_numpy())
+        n_bytes = (int(g_nz) * int(g_nphi) + 7) // 8
+        bad = sel[lengths[sel] != n_bytes]
+        if bad.size or not (g_dz > 0) or g_nz < 1 or g_nphi < 1:
+            b = bad[0] if bad.size else sel[0]
+            raise InputError(f"engagement: pass {pass_ids[b]}: mask of {lengths[b]} bytes, dz_mm {g_dz:g}, "
+                             f"grid {int(g_nz)}×{int(g_nphi)} (needs dz_mm > 0 and ceil(n_z·n_phi/8) = {n_bytes} bytes)")
+        rows_bytes = packed[sel] if isinstance(packed, np.ndarray) else np.stack([packed[i] for i in sel])
+        f_g = cutting.cutting_forces_packed(rows_bytes, int(g_nz), int(g_nphi), float(g_dz),
+                                            fz[sel], tool, coeffs, theta)
+        if len(uniq) == 1:
+            forces_feed = f_g                   # one grid for the program (the usual case): no copy
+        else:
+            forces_feed[sel] = f_g
+    # feed frame → machine frame, component arrays kept contiguous for the list columns
+    c = engagement.column("feed_dir_x").to_numpy().astype(float)
+    s = engagement.column("feed_dir_y").to_numpy().astype(float)
+    norm = np.hypot(c, s)
+    if np.any(~(norm > 0)):
+        raise InputError(f"engagement: pass {pass_ids[np.argmin(norm > 0)]} has no feed direction")
+    c, s = (c / norm)[:, None], (s / norm)[:, None]
+    fxf, fyf = forces_feed[..., 0], forces_feed[..., 1]
+    fx, fy, fz_n = c * fxf - s * fyf, s * fxf + c * fyf, forces_feed[..., 2]
     table = pa.table({
         "program_id": engagement.column("program_id"),
         "pass_id": pa.array(pass_ids.astype(np.int32)),
         "rotation_deg": list_column(np.broadcast_to(theta, (len(pass_ids), N_ROT))),
-        "fx_n": list_column(f[..., 0]),
-        "fy_n": list_column(f[..., 1]),
-        "fz_n": list_column(f[..., 2]),
+        "fx_n": list_column(fx),
+        "fy_n": list_column(fy),
+        "fz_n": list_column(fz_n),
         "spindle_rpm": pa.array(rpm.astype(float)),
         "feed_per_tooth_mm": pa.array(fz),
     })

@@ -201,24 +201,35 @@ def deflection_rk4(force_n: np.ndarray, spindle_rpm, modes, decay: float = 1e-7,
     return out
 
 
+def _compliance_per_pass(n_rot: int, spindle_rpm, frf: dict):
+    """(Gx, Gy) at the harmonics of each pass, (P, n_rot//2+1); evaluated once per distinct speed."""
+    rpm = np.asarray(spindle_rpm, dtype=float)
+    uniq, inv = np.unique(rpm, return_inverse=True)
+    gx, gy = compliance(harmonic_freqs_hz(n_rot, uniq), frf)
+    return gx[inv.ravel()], gy[inv.ravel()]
+
+
 def tool_deflection(forces_xy: np.ndarray, spindle_rpm, frf: dict, method: str = "fft") -> np.ndarray:
     """Deflection (µm) along machine x and y of forces (P, n_rot, 2+) on the tool.
 
     The tool moves along the force acting on it (compliance positive at 0 Hz). ``method``: 'fft'
-    (default) or 'rk4' (modal FRF only).
+    (default) or 'rk4' (modal FRF only). Returns (P, n_rot, 2).
     """
-    out = np.empty(forces_xy.shape[:2] + (2,))
+    fx, fy = deflection_xy(np.ascontiguousarray(forces_xy[..., 0]), np.ascontiguousarray(forces_xy[..., 1]),
+                           spindle_rpm, frf, method)
+    return np.stack([fx, fy], axis=-1)
+
+
+def deflection_xy(fx_n: np.ndarray, fy_n: np.ndarray, spindle_rpm, frf: dict, method: str = "fft"):
+    """``tool_deflection`` on separate (P, n_rot) force arrays; returns (dx_um, dy_um)."""
+    n_rot = fx_n.shape[1]
     if method == "fft":
-        n_rot = forces_xy.shape[1]
-        gx, gy = compliance(harmonic_freqs_hz(n_rot, spindle_rpm), frf)
-        spec = np.fft.rfft(forces_xy[..., :2], axis=1)
-        out[..., 0] = np.fft.irfft(spec[..., 0] * gx, n=n_rot, axis=1)
-        out[..., 1] = np.fft.irfft(spec[..., 1] * gy, n=n_rot, axis=1)
-    elif method == "rk4":
+        gx, gy = _compliance_per_pass(n_rot, spindle_rpm, frf)
+        dx = np.fft.irfft(np.fft.rfft(fx_n, axis=1) * gx, n=n_rot, axis=1)
+        dy = np.fft.irfft(np.fft.rfft(fy_n, axis=1) * gy, n=n_rot, axis=1)
+        return dx, dy
+    if method == "rk4":
         if not frf or frf.get("table") or not frf.get("x") or not frf.get("y"):
             raise InputError("machine.frf: the RK4 check needs modal parameters for x and y")
-        for a, key in enumerate("xy"):
-            out[..., a] = deflection_rk4(forces_xy[..., a], spindle_rpm, frf[key])
-    else:
-        raise ValueError(f"deflection method {method!r}: 'fft' or 'rk4'")
-    return out
+        return (deflection_rk4(fx_n, spindle_rpm, frf["x"]), deflection_rk4(fy_n, spindle_rpm, frf["y"]))
+    raise ValueError(f"deflection method {method!r}: 'fft' or 'rk4'")
