@@ -648,13 +648,13 @@ def find_transitions(contact_deg, second_um, threshold_um, floor_um):
         while j + 1 < m and core[j + 1] and np.sign(s[j + 1]) == np.sign(s[i]):
             j += 1
         sign = np.sign(s[i])
-        k = i + int(np.argmax(np.abs(s[i:j + 1])))
-        peak = s[k]
         a, b = i, j
         while a - 1 >= 0 and fin[a - 1] and np.sign(s[a - 1]) == sign and abs(s[a - 1]) > floor[a - 1]:
             a -= 1
         while b + 1 < m and fin[b + 1] and np.sign(s[b + 1]) == sign and abs(s[b + 1]) > floor[b + 1]:
             b += 1
+        k = a + int(np.argmax(np.abs(s[a:b + 1])))
+        peak = s[k]
         if regions and a <= regions[-1]["i2"]:
             prev = regions[-1]
             prev["i2"], prev["x2_deg"] = b, float(q[b])
@@ -668,7 +668,7 @@ def find_transitions(contact_deg, second_um, threshold_um, floor_um):
 
 
 def composite_profile(tool_profile_df, points_xyz, deviation_um, normals, *, bandwidth_deg=0.5,
-                      threshold_um=0.5, min_points=3.0, first_applied=True) -> pd.DataFrame:
+                      threshold_um=0.5, min_points=10.0, first_applied=True) -> pd.DataFrame:
     """Composite tool error shape CV2 + 3a1 of seed 002.
 
     The measured workpiece error at each point is the equivalent contour error of the tool
@@ -689,14 +689,16 @@ def composite_profile(tool_profile_df, points_xyz, deviation_um, normals, *, ban
         Outward surface normals (into air); points facing down (n_z < 0) cannot be cut by a
         3-axis tool and are dropped.
     bandwidth_deg : float
-        Kernel standard deviation over the contact angle: the resolution of the second error.
-        Wider averages more points (sparse, noisy measurements) but rounds steep changes, and
-        then over-corrects at the feet of a region (bias ≈ bandwidth² × curvature / 2).
+        Finest kernel standard deviation over the contact angle: the resolution of the second
+        error where points are dense. Where fewer than ``min_points`` effective points fall
+        within it, it is doubled (up to 16×) at that angle. Wider kernels round steep changes
+        and then over-correct at the feet of a region (bias ≈ bandwidth² × curvature / 2).
     threshold_um : float
-        Smallest second error treated as real; the effective threshold is also at least three
-        standard errors of the local mean.
+        Smallest second error treated as real; the effective threshold is also at least four
+        standard errors of the local mean (many angles are tested at once).
     min_points : float
-        Fewest effective points for a second-error value at an angle (else NaN: no data).
+        Effective points wanted under the kernel; with 16× the bandwidth still fewer, the
+        angle has no second error (NaN: no data, nothing added).
     first_applied : bool
         True (the seed's procedure) when the measured part was machined with the first error
         already compensated, so the deviation is all second error. False when it was machined
@@ -707,7 +709,7 @@ def composite_profile(tool_profile_df, points_xyz, deviation_um, normals, *, ban
     -------
     DataFrame
         contact_deg, error_um (composite), first_um, second_um (NaN: no data), second_se_um,
-        n_eff, in_transition. ``attrs``: transitions (list of X1/X2 regions, see
+        n_eff, bandwidth_deg (used at that angle), in_transition. ``attrs``: transitions (list of X1/X2 regions, see
         :func:`find_transitions`), n_points, n_dropped.
     """
     if isinstance(tool_profile_df, (str, Path)):
@@ -732,20 +734,34 @@ def composite_profile(tool_profile_df, points_xyz, deviation_um, normals, *, ban
     cnt = np.bincount(idx, minlength=CONTACT_DEG.size).astype(float)
     s1 = np.bincount(idx, weights=d, minlength=CONTACT_DEG.size)
     s2 = np.bincount(idx, weights=d * d, minlength=CONTACT_DEG.size)
-    ker = _kernel(bandwidth_deg / STEP_DEG)
-    W = np.convolve(cnt, ker, mode="same")
-    W2 = np.convolve(cnt, ker ** 2, mode="same")
-    S1 = np.convolve(s1, ker, mode="same")
-    S2 = np.convolve(s2, ker, mode="same")
-    with np.errstate(invalid="ignore", divide="ignore"):
-        n_eff = np.where(W2 > 0, W ** 2 / W2, 0.0)
-        mean = S1 / W
-        var = np.maximum(S2 / W - mean ** 2, 0.0)
-        se = np.sqrt(var / n_eff)
-    has = n_eff >= min_points
-    second = np.where(has, mean, np.nan)
-    se = np.where(has, se, np.nan)
-    thr = np.maximum(threshold_um, 3 * np.nan_to_num(se))
+    # measurement noise from neighbours in q (robust to a smooth trend): MAD of differences
+    dd = np.diff(d[np.argsort(q, kind="stable")])
+    noise = 1.4826 * np.median(np.abs(dd - np.median(dd))) / np.sqrt(2) if dd.size >= 2 else 0.0
+    # adaptive bandwidth: at each angle the narrowest of bandwidth × 1, 2, 4, 8, 16 that holds
+    # min_points effective points (dense data keep the resolution, sparse data are averaged)
+    second = np.full(CONTACT_DEG.size, np.nan)
+    se = np.full(CONTACT_DEG.size, np.nan)
+    n_eff_used = np.zeros(CONTACT_DEG.size)
+    bw_used = np.full(CONTACT_DEG.size, np.nan)
+    todo = np.ones(CONTACT_DEG.size, dtype=bool)
+    for factor in (1, 2, 4, 8, 16):
+        ker = _kernel(min(bandwidth_deg * factor / STEP_DEG, (CONTACT_DEG.size - 1) / 8))
+        W = np.convolve(cnt, ker, mode="same")
+        W2 = np.convolve(cnt, ker ** 2, mode="same")
+        S1 = np.convolve(s1, ker, mode="same")
+        S2 = np.convolve(s2, ker, mode="same")
+        with np.errstate(invalid="ignore", divide="ignore"):
+            n_eff = np.where(W2 > 0, W ** 2 / W2, 0.0)
+            mean = S1 / W
+            var = np.maximum(S2 / W - mean ** 2, 0.0)
+            # a local standard error from few points is itself noisy: use the larger of the
+            # local and the global scatter so a chance tight cluster is not "significant"
+            se_k = np.sqrt(np.maximum(var, noise ** 2) / np.maximum(n_eff - 1, 1))
+        take = todo & (n_eff >= min_points)
+        second[take], se[take] = mean[take], se_k[take]
+        n_eff_used[take], bw_used[take] = n_eff[take], bandwidth_deg * factor
+        todo &= ~take
+    thr = np.maximum(threshold_um, 4 * np.nan_to_num(se))
     floor = np.maximum(0.1 * threshold_um, 2 * np.nan_to_num(se))
     regions = find_transitions(CONTACT_DEG, second, thr, floor)
     inside = np.zeros(CONTACT_DEG.size, dtype=bool)
@@ -753,7 +769,8 @@ def composite_profile(tool_profile_df, points_xyz, deviation_um, normals, *, ban
         inside[r["i1"]:r["i2"] + 1] = True
     composite = first + np.where(inside, np.nan_to_num(second), 0.0)
     out = pd.DataFrame({"contact_deg": CONTACT_DEG.copy(), "error_um": composite, "first_um": first,
-                        "second_um": second, "second_se_um": se, "n_eff": n_eff, "in_transition": inside})
+                        "second_um": second, "second_se_um": se, "n_eff": n_eff_used,
+                        "bandwidth_deg": bw_used, "in_transition": inside})
     out.attrs["transitions"] = [{k: v for k, v in r.items() if k not in ("i1", "i2")} for r in regions]
     out.attrs["n_points"] = int(keep.sum())
     out.attrs["n_dropped"] = int((~keep).sum())

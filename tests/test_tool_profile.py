@@ -408,3 +408,17 @@ def test_16bit_colour_images_and_angles_from_name_order(tmp_path):
     cv2.imwrite(str(mixed), render(lambda q: R_PX + 0 * q))
     with pytest.raises(InputError, match="img0.png: no spindle angle"):
         tp.spindle_angles(tp.list_images(d))
+
+
+@pytest.mark.parametrize("n, noise", [(60, 1.0), (300, 0.5), (3000, 0.3)])
+def test_composite_adds_nothing_for_pure_noise(n, noise):
+    """Measurements with no systematic error (noise only, sparse to dense): no transition
+    region, the composite is the first error unchanged."""
+    first = pd.DataFrame({"contact_deg": GRID, "error_um": dent_um(GRID)})
+    for seed in range(5):
+        rng = np.random.default_rng(seed)
+        q = np.radians(rng.uniform(0, 90, n))
+        normals = np.column_stack([np.sin(q), np.zeros(n), np.cos(q)])
+        out = tp.composite_profile(first, np.zeros((n, 3)), rng.normal(0, noise, n), normals)
+        assert out.attrs["transitions"] == []
+        np.testing.assert_array_equal(out["error_um"], out["first_um"])
