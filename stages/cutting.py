@@ -51,10 +51,11 @@ face (κ = 0) is not in the engagement grid (levels are at z > 0) and removes no
 its edge rubbing is neglected.
 
 Runout: the rotation axis is offset by ``runout_um`` (eccentricity e) towards flute 0, so flute j
-turns on radius R + ρ_j with ρ_j = e·cos(2π j/N) (flute 0 at the maximum). The chip of flute j is
-the material left by the most recent flute that cut deeper (Kline–DeVor, generalised)::
+turns on radius R + ρ_j with ρ_j = e·cos(2π j/N) (flute 0 at the maximum). With the clockwise
+spindle, flute j+1 passes any angle 360/N before flute j, so the chip of flute j is the material
+left by the most recent flute ahead of it, j+m, that cut deeper (Kline–DeVor, generalised)::
 
-    h_j = sin κ · max(0, min_{m=1..N} (m·fz·cos φ + ρ_j − ρ_{j−m}))
+    h_j = sin κ · max(0, min_{m=1..N} (m·fz·cos φ + ρ_j − ρ_{j+m}))
 
 Engagement grid (the ``engagement`` table): bool E of shape (n_z, n_phi); E[k, i] is True when the
 envelope point at height z_k = (k+0.5)·dz above the tip and angle φ_i = (i+0.5)·360/n_phi is inside
@@ -225,8 +226,8 @@ def flute_positions_deg(grid: EdgeGrid, rotation_deg) -> np.ndarray:
 def chip_thickness_mm(fz_mm: float, cos_phi, sin_kappa, rho_mm=None):
     """Chip thickness of each flute, shape of ``cos_phi`` (…, flutes, n_z), with runout.
 
-    ``h_j = sin κ · max(0, min_m (m·fz·cos φ + ρ_j − ρ_{j−m}))``; without runout h = fz·cos φ·sin κ
-    clipped at 0.
+    ``h_j = sin κ · max(0, min_m (m·fz·cos φ + ρ_j − ρ_{j+m}))`` (flute j+m passed m tooth periods
+    before j); without runout h = fz·cos φ·sin κ clipped at 0.
     """
     cos_phi = np.asarray(cos_phi, dtype=float)
     if rho_mm is None or not np.any(rho_mm):
@@ -235,7 +236,9 @@ def chip_thickness_mm(fz_mm: float, cos_phi, sin_kappa, rho_mm=None):
     j = np.arange(n)
     best = None
     for m in range(1, n + 1):
-        delta = rho_mm[j] - rho_mm[(j - m) % n]                      # (flutes,)
+        # flute j+1 passes a given φ 360/N before flute j (φ_j = −θ − 360·j/N): j+m is the m-th
+        # flute ahead of j, whose surface j cuts when the ones in between missed
+        delta = rho_mm[j] - rho_mm[(j + m) % n]                      # (flutes,)
         cand = m * fz_mm * cos_phi + delta[:, None]
         best = cand if best is None else np.minimum(best, cand)
     return np.maximum(best, 0.0) * sin_kappa

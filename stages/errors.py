@@ -20,7 +20,7 @@ For the generating point C of a pass (``generating``: φ_C, q_C, n_C) and each f
 
 The height z_C of C above the tip (it sets the helix lag): on the corner (q < 90°) z_C = rc(1 − cos q);
 on the cylindrical side (q = 90°, and always for a flat end mill) z_C = gen_z − tip z of the pass at
-the point nearest C.
+the point nearest C (``tool.control_point: center`` programs are lowered by the corner radius).
 """
 from __future__ import annotations
 
@@ -199,7 +199,10 @@ def run(inputs: dict, params: dict) -> dict:
     gen_xyz = np.stack([col("gen_x_mm"), col("gen_y_mm"), col("gen_z_mm")], axis=1)
     normal = np.stack([col("nx"), col("ny"), col("nz")], axis=1)
     q = col("contact_deg")
-    z_c = contact_height_mm(tool, q, gen_xyz[:, 2], tip_z_nearest(passes, rows, gen_xyz))
+    tip_z = tip_z_nearest(passes, rows, gen_xyz)
+    if tool.get("control_point") == "center":              # programs of the corner/ball centre
+        tip_z = tip_z - cutting.corner_radius_mm(tool)
+    z_c = contact_height_mm(tool, q, gen_xyz[:, 2], tip_z)
     res = machining_error(dx, dy, col("rotation_deg"), q, normal, z_c, tool, profile)
     table = pa.table({
         "program_id": gen.column("program_id"),

@@ -222,6 +222,19 @@ def test_runout_chip_load():
     assert np.isclose(F[0, 1], KC["ktc"] * a * 2 * c, rtol=1e-6) and abs(F[1, 1]) < 1e-9
 
 
+def test_runout_three_flutes_order():
+    """Three flutes, radii R + e·cos(2πj/3) = R + e, R − e/2, R − e/2. The clockwise spindle brings
+    flute 1 to any angle before flute 0, flute 2 before flute 1, flute 0 before flute 2, so the
+    chips are fz + 1.5e (flute 0), fz (flute 1), fz − 1.5e (flute 2)."""
+    a, c, e_um = 2.0, 0.05, 10.0
+    E, dz = engagement_from_geometry("flat", 10.0, a, 10, 360)
+    tool = _tool("flat", 3, 0.0, runout=e_um)
+    # flute j points along the feed (ψ = 90°, alone in the cut) at θ = −120°·j
+    F = cutting.cutting_forces(E[None], dz, c, tool, KC, rotation_deg=np.array([0.0, 240.0, 120.0]))[0]
+    e = e_um * 1e-3
+    assert F[:, 1] == pytest.approx(KC["ktc"] * a * np.array([c + 1.5 * e, c, c - 1.5 * e]), rel=1e-6)
+
+
 def test_runout_keeps_mean_force_of_slot():
     """Material removed per revolution is unchanged by runout (no flute misses): same mean force."""
     E, dz = engagement_from_geometry("flat", 10.0, 2.0, 20, 360)
