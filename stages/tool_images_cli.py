@@ -97,7 +97,8 @@ def tool_profile_command(images_dir, um_per_px, diameter_mm, tool_type="ball", o
         "profile_csv": out_csv.name,
     }
     out_csv.parent.mkdir(parents=True, exist_ok=True)
-    tmp = {p: p.with_name(f".{p.name}.tmp{os.getpid()}") for p in (out_csv, out_json, out_png)}
+    # renamed in this order: the CSV (what workflows read) appears last, when the rest is there
+    tmp = {p: p.with_name(f".{p.name}.tmp{os.getpid()}") for p in (out_png, out_json, out_csv)}
     try:
         table = profile.copy()
         table["contact_deg"] = table["contact_deg"].map("{:.1f}".format)
