@@ -244,8 +244,10 @@ def wall_engagement(radius_mm: float, contact_deg: float, step_mm: float, stock_
     r, _ = cutting.envelope_at_height(R, R, z)
     u = -r[:, None] * np.sin(phi)[None, :]         # toward the wall
     w = (z - R)[:, None] * np.ones_like(phi)[None, :]
-    depth = -u * np.sin(q) + w * np.cos(q) + R     # distance of the point from the nominal wall, into the material is < 0… ≥ 0 on the ball
-    in_stock = depth < stock_mm
+    # height of the point above the nominal wall plane (along its normal, 0 at the contact point;
+    # every point of the ball is ≥ 0): inside the stock layer when below stock_mm
+    height = -u * np.sin(q) + w * np.cos(q) + R
+    in_stock = height < stock_mm
     cu, cw = step_mm * np.cos(q), step_mm * np.sin(q)
     outside_prev = (u - cu) ** 2 + (w - cw) ** 2 > R * R
     front = np.cos(phi)[None, :] > 0

@@ -140,7 +140,7 @@ def deflection_fft(force_n: np.ndarray, spindle_rpm, compliance_fn) -> np.ndarra
 
 
 def deflection_rk4(force_n: np.ndarray, spindle_rpm, modes, decay: float = 1e-7,
-                   points_per_period: int = 40) -> np.ndarray:
+                   points_per_period: int = 40, chunk: int = 256) -> np.ndarray:
     """Time-domain check: RK4 integration of the modes from rest, last revolution returned.
 
     Parameters
@@ -160,45 +160,51 @@ def deflection_rk4(force_n: np.ndarray, spindle_rpm, modes, decay: float = 1e-7,
     """
     force_n = np.atleast_2d(np.asarray(force_n, dtype=float))
     rpm = np.broadcast_to(np.asarray(spindle_rpm, dtype=float), (force_n.shape[0],))
-    n_pass, n_rot = force_n.shape
     out = np.empty_like(force_n)
     fn = np.array([float(m["fn_hz"]) for m in modes])
     zeta = np.array([float(m["zeta"]) for m in modes])
     k = np.array([float(m["k_n_per_um"]) for m in modes])
     wn = 2 * np.pi * fn
     for value in np.unique(rpm):
-        sel = np.flatnonzero(rpm == value)
-        period = 60.0 / value
-        # substeps per force sample so that dt resolves the fastest mode
-        sub = max(1, int(np.ceil(points_per_period * fn.max() * period / n_rot)))
-        n_steps = n_rot * sub
-        dt = period / n_steps
-        n_rev = int(np.ceil(-np.log(decay) / (zeta * wn).min() / period)) + 1
-        # force at half steps over one period, trigonometric interpolation of the samples
-        spec = np.fft.rfft(force_n[sel], axis=-1)
-        fine = np.fft.irfft(spec, n=2 * n_steps, axis=-1) * (2 * n_steps / n_rot)
-        fine = np.concatenate([fine, fine[:, :1]], axis=1)                   # wrap for index 2n
-        x = np.zeros((len(sel), len(modes)))
-        v = np.zeros_like(x)
-        acc_f = (wn ** 2 / k)[None, :]                                       # ωn²/k per mode
-
-        def accel(xx, vv, f):
-            return acc_f * f[:, None] - 2 * zeta * wn * vv - wn ** 2 * xx
-
-        last = np.empty((len(sel), n_rot))
-        for rev in range(n_rev):
-            for step in range(n_steps):
-                if rev == n_rev - 1 and step % sub == 0:
-                    last[:, step // sub] = x.sum(axis=1)
-                f0, fh, f1 = fine[:, 2 * step], fine[:, 2 * step + 1], fine[:, 2 * step + 2]
-                k1x, k1v = v, accel(x, v, f0)
-                k2x, k2v = v + 0.5 * dt * k1v, accel(x + 0.5 * dt * k1x, v + 0.5 * dt * k1v, fh)
-                k3x, k3v = v + 0.5 * dt * k2v, accel(x + 0.5 * dt * k2x, v + 0.5 * dt * k2v, fh)
-                k4x, k4v = v + dt * k3v, accel(x + dt * k3x, v + dt * k3v, f1)
-                x = x + dt / 6 * (k1x + 2 * k2x + 2 * k3x + k4x)
-                v = v + dt / 6 * (k1v + 2 * k2v + 2 * k3v + k4v)
-        out[sel] = last
+        for start in range(0, int(np.sum(rpm == value)), chunk):
+            sel = np.flatnonzero(rpm == value)[start:start + chunk]
+            out[sel] = _rk4_one_speed(force_n[sel], float(value), fn, zeta, k, wn, decay, points_per_period)
     return out
+
+
+def _rk4_one_speed(force_n, rpm, fn, zeta, k, wn, decay, points_per_period):
+    """RK4 from rest for passes sharing one spindle speed; returns the last revolution (P, n_rot)."""
+    n_pass, n_rot = force_n.shape
+    period = 60.0 / rpm
+    # substeps per force sample so that dt resolves the fastest mode
+    sub = max(1, int(np.ceil(points_per_period * fn.max() * period / n_rot)))
+    n_steps = n_rot * sub
+    dt = period / n_steps
+    n_rev = int(np.ceil(-np.log(decay) / (zeta * wn).min() / period)) + 1
+    # force at half steps over one period: the trigonometric interpolant of the samples
+    spec = np.fft.rfft(force_n, axis=-1)
+    fine = np.fft.irfft(spec, n=2 * n_steps, axis=-1) * (2 * n_steps / n_rot)
+    fine = np.concatenate([fine, fine[:, :1]], axis=1)                       # wrap for index 2n
+    x = np.zeros((n_pass, len(fn)))
+    v = np.zeros_like(x)
+    acc_f = (wn ** 2 / k)[None, :]                                           # ωn²/k per mode
+
+    def accel(xx, vv, f):
+        return acc_f * f[:, None] - 2 * zeta * wn * vv - wn ** 2 * xx
+
+    last = np.empty((n_pass, n_rot))
+    for rev in range(n_rev):
+        for step in range(n_steps):
+            if rev == n_rev - 1 and step % sub == 0:
+                last[:, step // sub] = x.sum(axis=1)
+            f0, fh, f1 = fine[:, 2 * step], fine[:, 2 * step + 1], fine[:, 2 * step + 2]
+            k1x, k1v = v, accel(x, v, f0)
+            k2x, k2v = v + 0.5 * dt * k1v, accel(x + 0.5 * dt * k1x, v + 0.5 * dt * k1v, fh)
+            k3x, k3v = v + 0.5 * dt * k2v, accel(x + 0.5 * dt * k2x, v + 0.5 * dt * k2v, fh)
+            k4x, k4v = v + dt * k3v, accel(x + dt * k3x, v + dt * k3v, f1)
+            x = x + dt / 6 * (k1x + 2 * k2x + 2 * k3x + k4x)
+            v = v + dt / 6 * (k1v + 2 * k2v + 2 * k3v + k4v)
+    return last
 
 
 def _compliance_per_pass(n_rot: int, spindle_rpm, frf: dict):

@@ -9,7 +9,6 @@ import schemas
 from stages import cutting, errors, frf
 from stages import deflection as deflection_stage
 from stages import forces as forces_stage
-from stages.forces import list_column
 
 BALL = {"type": "ball", "diameter_mm": 10.0, "flutes": 2, "helix_deg": 30.0, "corner_radius_mm": None,
         "runout_um": 0.0, "profile": None}
