@@ -223,11 +223,12 @@ def run(inputs: dict, params: dict) -> dict:
 # analytic benchmark: error vs contact angle on a wall finished by a ball end mill (seed Fig. 19)
 # --------------------------------------------------------------------------------------------
 def wall_engagement(radius_mm: float, contact_deg: float, step_mm: float, stock_mm: float,
-                    n_z: int = 64, n_phi: int = 360) -> tuple[np.ndarray, float]:
+                    n_z: int = 64, n_phi: int = 360, side: str = "right") -> tuple[np.ndarray, float]:
     """Cutting region of a ball end mill finishing a wall inclined at q (analytic, no rendering).
 
-    Feed along +x (feed frame = machine frame); the wall is on the right of the feed (φ = −90°,
-    down milling with M3), tangent to the ball at contact angle q. The material before the pass is
+    Feed along +x (feed frame = machine frame); the wall is on the ``side`` of the feed ('right':
+    φ = −90°, down milling with M3; 'left': φ = +90°, up milling), tangent to the ball at contact
+    angle q. The material before the pass is
     everything within ``stock_mm`` of the nominal wall, minus the groove of the previous pass, whose
     ball centre lies ``step_mm`` up along the wall. Only the front half cuts (the back half is in the
     groove of the previous tooth).
@@ -242,7 +243,8 @@ def wall_engagement(radius_mm: float, contact_deg: float, step_mm: float, stock_
     z = (np.arange(n_z) + 0.5) * dz
     phi = np.radians((np.arange(n_phi) + 0.5) * 360.0 / n_phi)
     r, _ = cutting.envelope_at_height(R, R, z)
-    u = -r[:, None] * np.sin(phi)[None, :]         # toward the wall
+    sign = {"right": -1.0, "left": 1.0}[side]
+    u = sign * r[:, None] * np.sin(phi)[None, :]   # toward the wall
     w = (z - R)[:, None] * np.ones_like(phi)[None, :]
     # height of the point above the nominal wall plane (along its normal, 0 at the contact point;
     # every point of the ball is ≥ 0): inside the stock layer when below stock_mm
@@ -256,11 +258,13 @@ def wall_engagement(radius_mm: float, contact_deg: float, step_mm: float, stock_
 
 def error_vs_contact_angle(contact_deg, tool: dict, material: dict, frf: dict, feed_mm_min: float,
                            spindle_rpm: float, step_mm: float = 0.3, stock_mm: float = 0.1,
-                           n_z: int = 64, n_phi: int = 360, profile=None) -> dict:
+                           n_z: int = 64, n_phi: int = 360, profile=None, side: str = "right") -> dict:
     """Predicted error on walls inclined at each contact angle q, ball end mill (seed Fig. 19 check).
 
     Chains the analytic cutting region (``wall_engagement``), the force model, the FFT deflection
-    and ``machining_error`` with C at φ = −90°, q, normal (0, sin q, cos q).
+    and ``machining_error`` with C at φ = ∓90°, q, normal (0, ±sin q, cos q) for a wall on the
+    right/left of the feed. The seed's cylinder (Fig. 16: Ø20 ball, 2 flutes, 6000 min⁻¹,
+    0.4 mm/tooth, 0.2 mm stock, 0.63 mm pitch, zigzag) alternates both sides.
     """
     from stages import frf as frf_mod
     if tool["type"] != "ball":
@@ -269,7 +273,7 @@ def error_vs_contact_angle(contact_deg, tool: dict, material: dict, frf: dict, f
     R = float(tool["diameter_mm"]) / 2
     grids = []
     for qd in qs:
-        e, dz = wall_engagement(R, qd, step_mm, stock_mm, n_z, n_phi)
+        e, dz = wall_engagement(R, qd, step_mm, stock_mm, n_z, n_phi, side)
         grids.append(e)
     engaged = np.stack(grids)
     fz = cutting.feed_per_tooth_mm(feed_mm_min, spindle_rpm, int(tool["flutes"]))
@@ -278,8 +282,9 @@ def error_vs_contact_angle(contact_deg, tool: dict, material: dict, frf: dict, f
     rpm = np.full(len(qs), float(spindle_rpm))
     d = frf_mod.tool_deflection(f, rpm, frf)
     qr = np.radians(qs)
-    normal = np.stack([np.zeros_like(qr), np.sin(qr), np.cos(qr)], axis=1)
-    res = machining_error(d[..., 0], d[..., 1], np.full(len(qs), -90.0), qs, normal,
+    sign = {"right": 1.0, "left": -1.0}[side]
+    normal = np.stack([np.zeros_like(qr), sign * np.sin(qr), np.cos(qr)], axis=1)
+    res = machining_error(d[..., 0], d[..., 1], np.full(len(qs), -90.0 * sign), qs, normal,
                           cutting.corner_height_mm(R, qs), tool, profile)
     res["contact_deg"] = qs
     res["forces_n"] = f

@@ -94,19 +94,27 @@ def test_deflection_read_at_generating_spindle_angle():
     assert r["err_um"][0] == pytest.approx(cands[j] / 10.0, abs=1e-9)
 
 
-def test_error_vs_contact_angle_trend():
-    """Seed Fig. 19 trend on an analytic wall cut (ball, contact angle from tip to wall): near the
-    tip the normal is vertical and the horizontal deflection hardly moves the surface; the error
-    is bounded by |d|·sin q there and is much larger on the steep part."""
-    frf_params = {"x": [{"fn_hz": 900.0, "zeta": 0.03, "k_n_per_um": 2.0}],
-                  "y": [{"fn_hz": 900.0, "zeta": 0.03, "k_n_per_um": 2.0}]}
-    qs = np.array([1.0, 3.0, 5.0, 30.0, 45.0, 60.0, 75.0, 90.0])
-    r = errors.error_vs_contact_angle(qs, BALL, MAT, frf_params, 2000.0, 10000.0, step_mm=0.5, stock_mm=0.2)
-    d = frf.tool_deflection(r["forces_n"], np.full(len(qs), 10000.0), frf_params)
+@pytest.mark.parametrize("side", ["right", "left"])
+@pytest.mark.parametrize("fn_hz", [900.0, 20000.0])
+def test_error_vs_contact_angle_trend(side, fn_hz):
+    """Seed Fig. 19 trend, seed cylinder conditions (Ø20 ball, 2 flutes, 6000 min⁻¹, 0.4 mm/tooth,
+    0.2 mm stock, 0.63 mm pitch) on analytic walls from the tip to the side, down milling (wall on
+    the right) and up milling (left, the zigzag's other half), a dynamic (900 Hz) and a quasi-static
+    FRF: the error is bounded by |d|·sin q (the normal turns from vertical to horizontal), small
+    near the tip and larger toward the wall."""
+    tool = {**BALL, "diameter_mm": 20.0}
+    mode = {"fn_hz": fn_hz, "zeta": 0.03, "k_n_per_um": 2.0}
+    frf_params = {"x": [mode], "y": [mode]}
+    qs = np.array([1.0, 3.0, 5.0, 10.0, 20.0, 30.0, 40.0, 50.0, 60.0, 70.0, 80.0, 89.0])
+    r = errors.error_vs_contact_angle(qs, tool, MAT, frf_params, 4800.0, 6000.0, step_mm=0.63,
+                                      stock_mm=0.2, side=side, n_z=96)
+    d = frf.tool_deflection(r["forces_n"], np.full(len(qs), 6000.0), frf_params)
     dmax = np.abs(d).max(axis=(1, 2))
     assert np.all(np.abs(r["err_deflection_um"]) <= dmax * np.sin(np.radians(qs)) + 1e-9)
-    near_tip, steep = np.abs(r["err_um"][qs <= 5]), np.abs(r["err_um"][qs >= 30])
-    assert near_tip.max() < 1.0 and steep.mean() > 3 * near_tip.mean()
+    err = r["err_um"]
+    near_tip, mid, wall = np.abs(err[qs <= 5]), err[(qs >= 10) & (qs <= 30)], err[qs >= 40]
+    assert near_tip.max() < 0.5
+    assert wall.mean() > 2.0 and wall.mean() > mid.mean() and wall.min() > 5 * near_tip.mean()
 
 
 # ------------------------------------------------------------------------------------------------
