@@ -16,7 +16,8 @@ For the generating point C of a pass (``generating``: φ_C, q_C, n_C) and each f
 - The surface left is that of the flute that cuts deepest: the minimum over flutes.
 - Shape error: the tool profile table (claim 2, ``tool.profile``: CSV ``contact_deg,error_um``,
   error_um > 0 = the tool is smaller than nominal there = material left), linearly interpolated at
-  q_C and held constant beyond its first/last row.
+  q_C and held constant beyond its first/last row. A profile measured as the envelope of the
+  *rotating* tool already contains −e·sin q: give ``runout_um: 0`` with it, or runout counts twice.
 
 The height z_C of C above the tip (it sets the helix lag): on the corner (q < 90°) z_C = rc(1 − cos q);
 on the cylindrical side (q = 90°, and always for a flat end mill) z_C = gen_z − tip z of the pass at
