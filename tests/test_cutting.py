@@ -354,3 +354,14 @@ def test_calibration_recovers_coefficients(tmp_path):
     for name in cutting.COEFF_NAMES:
         assert fit[name] == pytest.approx(KE[name], rel=0.02), name
     assert fit["r2"] > 0.99 and fit["rms_n"] < 1.2 and fit["rank"] == 6
+
+
+def test_force_record_errors(tmp_path):
+    from stages import InputError
+    p = tmp_path / "rec.csv"
+    p.write_text("angle,fx_n,fy_n,fz_n\n0,1,2,3\n")
+    with pytest.raises(InputError, match="rec.csv:1"):
+        calibrate.read_force_csv(p)
+    p.write_text("rotation_deg,fx_n,fy_n,fz_n\n" + "0,1,2,3\n" * 6 + "7,1,x,3\n")
+    with pytest.raises(InputError, match="rec.csv:8"):
+        calibrate.read_force_csv(p)
