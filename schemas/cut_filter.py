@@ -1,6 +1,10 @@
 import pyarrow as pa
 
-# DESIGN §6 minimum columns for `cut_filter`; the stage that fills it may add more here.
+# DESIGN §6 `cut_filter` (claim 7), one row per pass. Added columns:
+#   pred_t               position of the prediction point along the pass, 0..1 (NaN if not cutting)
+#   cut_max_contact_deg  largest contact angle over the pixels the pass cuts (upper bound for the
+#                        contact angle of the surface it leaves; used by angle_prune for passes
+#                        whose surface is not visible from below)
 SCHEMA = pa.schema([
     pa.field('program_id', pa.string()),
     pa.field('pass_id', pa.int32()),
@@ -9,4 +13,6 @@ SCHEMA = pa.schema([
     pa.field('pred_x_mm', pa.float64()),
     pa.field('pred_y_mm', pa.float64()),
     pa.field('pred_z_mm', pa.float64()),
+    pa.field('pred_t', pa.float64()),
+    pa.field('cut_max_contact_deg', pa.float64()),
 ])

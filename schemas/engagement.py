@@ -1,0 +1,17 @@
+import pyarrow as pa
+
+# One row per predicted pass: where the tool envelope is inside the material at the prediction
+# point (seed 000 claim 5), on a grid of axial levels z_k = (k + 0.5) * dz_mm above the tool tip
+# and rotation angles phi_j = (j + 0.5) * 360 / n_phi degrees, counter-clockwise from the feed
+# direction seen from above. mask = np.packbits of the boolean array E (n_z, n_phi), C order;
+# decode with stages.generating.unpack_engagement(row).
+SCHEMA = pa.schema([
+    pa.field('program_id', pa.string()),
+    pa.field('pass_id', pa.int32()),
+    pa.field('dz_mm', pa.float64()),
+    pa.field('n_z', pa.int32()),
+    pa.field('n_phi', pa.int32()),
+    pa.field('mask', pa.binary()),
+    pa.field('feed_dir_x', pa.float64()),
+    pa.field('feed_dir_y', pa.float64()),
+])

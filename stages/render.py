@@ -1,0 +1,474 @@
+"""Render core: orthographic depth-tested rendering of many small windows at once.
+
+One small interface, two back ends (DESIGN §2):
+
+- ``GLRenderer``: moderngl on a headless EGL context (Mesa llvmpipe on a machine without GPU,
+  the GPU on a workstation). The context is created lazily, once per process.
+- ``CPURenderer``: a vectorised numpy z-buffer. Reference in tests and the "software method" of the
+  speed comparison (bench/bench_render.py).
+
+Both take the same input: a list of :class:`View` windows and one triangle list whose triangles
+name the window they belong to. The shared front end (:func:`_to_atlas`) packs the windows into
+an atlas framebuffer (many windows per framebuffer: one draw call renders all of them), transforms
+every triangle into atlas pixel coordinates, applies per-triangle depth bias and drops triangles
+outside their window. The back ends only rasterise: depth test LESS, per-corner attributes
+interpolated linearly, fragments outside the triangle's own window rectangle discarded. Memory is
+bounded by the atlas size and the triangle budget per draw, never by the size of the program.
+
+A view looks along ``view_dir`` (from below: ``+Z``, the material side; seed para 0045). Depth
+is the coordinate along ``view_dir`` measured from the view centre; nearer = smaller.
+
+Per pixel the result holds the winning triangle's ``id`` (first attribute, an integer stored as
+float: exact up to 2**24) and two interpolated attributes ``a``, ``b`` (e.g. rotation angle φ and
+contact angle q, claim 4), and the depth.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+ATLAS_PX = 2048                 # default atlas side (grown up to the GL limit for large windows)
+TRI_BUDGET = 1_500_000          # triangles per draw (bounds the vertex buffer to ~200 MB)
+
+
+@dataclass(frozen=True)
+class View:
+    """Orthographic window.
+
+    center : (3,) point on the view axis (mm). view_dir : (3,) direction the rays travel.
+    up : (3,) direction of increasing image rows (projected orthogonal to view_dir).
+    width_mm, height_mm : window extent; px_per_mm : resolution.
+    near_mm, far_mm : depth range along view_dir relative to ``center``.
+    """
+
+    center: tuple
+    view_dir: tuple
+    up: tuple
+    width_mm: float
+    height_mm: float
+    px_per_mm: float
+    near_mm: float
+    far_mm: float
+
+    @property
+    def shape(self):
+        """(rows, cols) in pixels."""
+        return (max(1, int(math.ceil(self.height_mm * self.px_per_mm - 1e-9))),
+                max(1, int(math.ceil(self.width_mm * self.px_per_mm - 1e-9))))
+
+    def basis(self):
+        """Unit vectors (right, up, view_dir) of the image frame."""
+        d = np.asarray(self.view_dir, float)
+        d = d / np.linalg.norm(d)
+        up = np.asarray(self.up, float)
+        up = up - (up @ d) * d
+        if np.linalg.norm(up) < 1e-9:                      # up parallel to view: any normal
+            up = np.cross(d, [1.0, 0, 0]) if abs(d[0]) < 0.9 else np.cross(d, [0, 1.0, 0])
+        up /= np.linalg.norm(up)
+        right = np.cross(up, d)
+        return right, up, d
+
+    def pixel_points(self, rows, cols, depth):
+        """3-D points of pixel centres (rows, cols) at ``depth`` along the view direction."""
+        right, up, d = self.basis()
+        h, w = self.shape
+        x = (np.asarray(cols) + 0.5 - w / 2) / self.px_per_mm
+        y = (np.asarray(rows) + 0.5 - h / 2) / self.px_per_mm
+        c = np.asarray(self.center, float)
+        return (c + x[..., None] * right + y[..., None] * up
+                + np.asarray(depth, float)[..., None] * d)
+
+    def project(self, points):
+        """(cols, rows) pixel coordinates (continuous) and depth of 3-D points."""
+        right, up, d = self.basis()
+        h, w = self.shape
+        p = np.asarray(points, float) - np.asarray(self.center, float)
+        return (p @ right * self.px_per_mm + w / 2, p @ up * self.px_per_mm + h / 2, p @ d)
+
+
+@dataclass
+class Image:
+    """One rendered window. ``depth`` is +inf and ``id`` -1 where nothing was drawn."""
+
+    view: View
+    depth: np.ndarray   # (h, w) float64, mm along view_dir from the view centre
+    id: np.ndarray      # (h, w) int64
+    a: np.ndarray       # (h, w) float32
+    b: np.ndarray       # (h, w) float32
+
+
+@dataclass
+class Scene:
+    """Triangles for a batch of windows.
+
+    tris : (n, 3, 3) world corners (mm). attrs : (n, 3, 3) per-corner (id, a, b).
+    bias : (n,) depth bias in mm added before the depth test (pushes a triangle back).
+    window : (n,) index of the view each triangle belongs to.
+    """
+
+    tris: np.ndarray
+    attrs: np.ndarray
+    bias: np.ndarray
+    window: np.ndarray
+
+    @staticmethod
+    def concat(parts):
+        parts = [p for p in parts if p is not None and len(p.tris)]
+        if not parts:
+            return Scene(np.zeros((0, 3, 3)), np.zeros((0, 3, 3), np.float32), np.zeros(0),
+                         np.zeros(0, np.int64))
+        return Scene(np.concatenate([p.tris for p in parts]),
+                     np.concatenate([p.attrs for p in parts]),
+                     np.concatenate([p.bias for p in parts]),
+                     np.concatenate([p.window for p in parts]))
+
+
+def make_scene(tris, window, tri_id, a=None, b=None, bias=0.0):
+    """Scene from triangles with one id per triangle and per-corner attributes a, b."""
+    tris = np.asarray(tris, float).reshape(-1, 3, 3)
+    n = len(tris)
+    attrs = np.zeros((n, 3, 3), np.float32)
+    attrs[:, :, 0] = np.broadcast_to(np.asarray(tri_id, float).reshape(-1, 1) if np.ndim(tri_id)
+                                     else tri_id, (n, 3))
+    if a is not None:
+        attrs[:, :, 1] = np.broadcast_to(a, (n, 3))
+    if b is not None:
+        attrs[:, :, 2] = np.broadcast_to(b, (n, 3))
+    return Scene(tris, attrs, np.broadcast_to(np.asarray(bias, float), (n,)).copy(),
+                 np.broadcast_to(np.asarray(window), (n,)).astype(np.int64))
+
+
+# ------------------------------------------------------------------------------------ front end
+
+def _pack(views, atlas_px):
+    """Shelf-pack windows into atlases; returns per view (atlas index, x0, y0)."""
+    out, atlas, x, y, row_h = [], 0, 0, 0, 0
+    for v in views:
+        h, w = v.shape
+        if w > atlas_px or h > atlas_px:
+            raise ValueError(f"window {w}x{h} px larger than the atlas {atlas_px}")
+        if x + w > atlas_px:
+            x, y, row_h = 0, y + row_h, 0
+        if y + h > atlas_px:
+            atlas, x, y, row_h = atlas + 1, 0, 0, 0
+        out.append((atlas, x, y))
+        x += w
+        row_h = max(row_h, h)
+    return out
+
+
+def _to_atlas(views, scene, offsets):
+    """Atlas-space vertices: (n, 3, 3) [x_px, y_px, depth01], attrs+depth (n, 3, 4), rect (n, 4)."""
+    nv = len(views)
+    C = np.array([v.center for v in views], float)
+    R = np.empty((nv, 3, 3))
+    for i, v in enumerate(views):
+        R[i] = np.stack(v.basis())
+    ppm = np.array([v.px_per_mm for v in views], float)
+    hw = np.array([v.shape for v in views], float)
+    near = np.array([v.near_mm for v in views], float)
+    far = np.array([v.far_mm for v in views], float)
+    off = np.array([(o[1], o[2]) for o in offsets], float)
+
+    k = scene.window
+    p = scene.tris - C[k][:, None, :]
+    loc = np.einsum("nij,nkj->nki", R[k], p)                      # (n, 3, 3) right, up, depth
+    x = loc[..., 0] * ppm[k, None] + hw[k, 1, None] / 2
+    y = loc[..., 1] * ppm[k, None] + hw[k, 0, None] / 2
+    dmm = loc[..., 2] + scene.bias[:, None] - near[k, None]
+    span = (far - near)[k, None]
+    # drop triangles entirely outside their window or depth range
+    keep = ((x.max(1) >= 0) & (x.min(1) <= hw[k, 1]) & (y.max(1) >= 0) & (y.min(1) <= hw[k, 0])
+            & (dmm.max(1) >= 0) & (dmm.min(1) <= span[:, 0]))
+    k = k[keep]
+    pos = np.stack([x[keep] + off[k, 0, None], y[keep] + off[k, 1, None],
+                    dmm[keep] / span[keep]], axis=-1)
+    attrs = np.concatenate([scene.attrs[keep].astype(np.float32),
+                            dmm[keep, :, None].astype(np.float32)], axis=-1)
+    rect = np.stack([off[k, 0], off[k, 1], off[k, 0] + hw[k, 1], off[k, 1] + hw[k, 0]], axis=-1)
+    return pos, attrs, rect, k
+
+
+class Renderer:
+    """Render a batch of windows. Subclasses implement :meth:`_raster` only."""
+
+    name = "base"
+    atlas_px = ATLAS_PX
+    tri_budget = TRI_BUDGET
+
+    def render(self, views, scene: Scene):
+        """Render ``scene`` into ``views``; returns one :class:`Image` per view."""
+        views = list(views)
+        if not views:
+            return []
+        atlas_px = self.atlas_px
+        big = max(max(v.shape) for v in views)
+        if big > atlas_px:
+            atlas_px = min(self.max_atlas_px(), 1 << int(math.ceil(math.log2(big))))
+        order = np.argsort(scene.window, kind="stable")
+        starts = np.searchsorted(scene.window[order], np.arange(len(views) + 1))
+        counts = np.diff(starts)
+        # group windows into draws bounded by atlas area and triangle budget
+        offsets = _pack(views, atlas_px)
+        images = [None] * len(views)
+        i = 0
+        while i < len(views):
+            atlas = offsets[i][0]
+            j, ntri = i, 0
+            while j < len(views) and offsets[j][0] == atlas and (j == i or ntri + counts[j] <= self.tri_budget):
+                ntri += counts[j]
+                j += 1
+            sub = views[i:j]
+            sub_off = _pack(sub, atlas_px)           # repack from origin for this draw
+            sel = order[starts[i]:starts[j]]
+            sc = Scene(scene.tris[sel], scene.attrs[sel], scene.bias[sel], scene.window[sel] - i)
+            pos, attrs, rect, _ = _to_atlas(sub, sc, sub_off)
+            W = max(o[1] + v.shape[1] for o, v in zip(sub_off, sub))
+            H = max(o[2] + v.shape[0] for o, v in zip(sub_off, sub))
+            color = self._raster(pos, attrs, rect, (H, W))
+            for v, o, n in zip(sub, sub_off, range(i, j)):
+                h, w = v.shape
+                blk = color[o[2]:o[2] + h, o[1]:o[1] + w]
+                empty = blk[..., 0] < -0.5
+                depth = np.where(empty, np.inf, blk[..., 3].astype(np.float64) + v.near_mm)
+                images[n] = Image(v, depth, np.where(empty, -1, np.rint(blk[..., 0])).astype(np.int64),
+                                  blk[..., 1].copy(), blk[..., 2].copy())
+            i = j
+        return images
+
+    def max_atlas_px(self):
+        return 8192
+
+    def _raster(self, pos, attrs, rect, size):   # pragma: no cover - interface
+        raise NotImplementedError
+
+
+# ------------------------------------------------------------------------------------ numpy z-buffer
+
+class CPURenderer(Renderer):
+    """Vectorised numpy z-buffer over the same atlas triangles as the GL back end.
+
+    Triangles are bucketed by bounding-box size; each bucket is rasterised as one array
+    operation (pixel centres × edge functions), and fragments are merged into the z-buffer by a
+    sort per chunk. Memory is bounded by ``frag_budget``.
+    """
+
+    name = "cpu"
+    frag_budget = 2_000_000
+
+    def _raster(self, pos, attrs, rect, size):
+        H, W = size
+        zbuf = np.full(H * W, np.inf)
+        tbuf = np.full(H * W, -1, np.int64)
+        w1buf = np.zeros(H * W)
+        w2buf = np.zeros(H * W)
+        if len(pos):
+            x, y, z = pos[..., 0].astype(np.float64), pos[..., 1].astype(np.float64), pos[..., 2]
+            area2 = (x[:, 1] - x[:, 0]) * (y[:, 2] - y[:, 0]) - (x[:, 2] - x[:, 0]) * (y[:, 1] - y[:, 0])
+            ok = np.abs(area2) > 1e-12
+            # pixel centres (i + 0.5) covered by the bbox, clipped to the triangle's window
+            x_lo = np.maximum(np.ceil(x.min(1) - 0.5), rect[:, 0]).astype(np.int64)
+            x_hi = np.minimum(np.floor(x.max(1) - 0.5), rect[:, 2] - 1).astype(np.int64)
+            y_lo = np.maximum(np.ceil(y.min(1) - 0.5), rect[:, 1]).astype(np.int64)
+            y_hi = np.minimum(np.floor(y.max(1) - 0.5), rect[:, 3] - 1).astype(np.int64)
+            ok &= (x_hi >= x_lo) & (y_hi >= y_lo)
+            idx = np.nonzero(ok)[0]
+            bw = x_hi[idx] - x_lo[idx] + 1
+            bh = y_hi[idx] - y_lo[idx] + 1
+            kw = np.ceil(np.log2(bw)).astype(np.int64)
+            kh = np.ceil(np.log2(bh)).astype(np.int64)
+            key = kw * 64 + kh
+            # edge-function coefficients: w_k = a_k*px + b_k*py + c_k  (k = 1, 2)
+            inv = 1.0 / np.where(ok, area2, 1.0)
+            a1 = (y[:, 2] - y[:, 0]) * inv
+            b1 = -(x[:, 2] - x[:, 0]) * inv
+            a2 = -(y[:, 1] - y[:, 0]) * inv
+            b2 = (x[:, 1] - x[:, 0]) * inv
+            for kk in np.unique(key):
+                tri = idx[key == kk]
+                BW, BH = 1 << int(kk // 64), 1 << int(kk % 64)
+                per = max(1, self.frag_budget // (BW * BH))
+                ox = np.arange(BW)[None, None, :]
+                oy = np.arange(BH)[None, :, None]
+                for s in range(0, len(tri), per):
+                    t = tri[s:s + per]
+                    px = x_lo[t][:, None, None] + ox
+                    py = y_lo[t][:, None, None] + oy
+                    dx = px + 0.5 - x[t, 0][:, None, None]
+                    dy = py + 0.5 - y[t, 0][:, None, None]
+                    w1 = a1[t][:, None, None] * dx + b1[t][:, None, None] * dy
+                    w2 = a2[t][:, None, None] * dx + b2[t][:, None, None] * dy
+                    m = ((w1 >= -1e-9) & (w2 >= -1e-9) & (w1 + w2 <= 1 + 1e-9)
+                         & (px <= x_hi[t][:, None, None]) & (py <= y_hi[t][:, None, None]))
+                    ti, iy, ix = np.nonzero(m)
+                    if not len(ti):
+                        continue
+                    w1f, w2f = w1[ti, iy, ix], w2[ti, iy, ix]
+                    tt = t[ti]
+                    d = z[tt, 0] + w1f * (z[tt, 1] - z[tt, 0]) + w2f * (z[tt, 2] - z[tt, 0])
+                    pix = (y_lo[tt] + iy) * W + (x_lo[tt] + ix)
+                    inside = (d >= 0) & (d <= 1)
+                    # nearest fragment per pixel within the chunk, then merge with the buffer
+                    o = np.lexsort((tt, d, pix))
+                    o = o[inside[o]]
+                    if not len(o):
+                        continue
+                    ps = pix[o]
+                    first = np.ones(len(o), bool)
+                    first[1:] = ps[1:] != ps[:-1]
+                    o = o[first]
+                    ps = pix[o]
+                    win = d[o] < zbuf[ps]
+                    o, ps = o[win], ps[win]
+                    zbuf[ps] = d[o]
+                    tbuf[ps] = tt[o]
+                    w1buf[ps] = w1f[o]
+                    w2buf[ps] = w2f[o]
+        color = np.zeros((H * W, 4), np.float32)
+        color[:, 0] = -1
+        hit = np.nonzero(tbuf >= 0)[0]
+        t = tbuf[hit]
+        w1, w2 = w1buf[hit, None], w2buf[hit, None]
+        color[hit] = attrs[t, 0] * (1 - w1 - w2) + attrs[t, 1] * w1 + attrs[t, 2] * w2
+        return color.reshape(H, W, 4)
+
+
+# ------------------------------------------------------------------------------------ moderngl
+
+_GL_CONTEXT = None
+_GL_ERROR = None
+
+_VS = """
+#version 330
+uniform vec2 size;
+in vec3 in_pos;
+in vec4 in_attr;
+in vec4 in_rect;
+out vec4 v_attr;
+void main() {
+    gl_Position = vec4(in_pos.x / size.x * 2.0 - 1.0, in_pos.y / size.y * 2.0 - 1.0,
+                       in_pos.z * 2.0 - 1.0, 1.0);
+    v_attr = in_attr;
+    // clip to the triangle's own window of the atlas (clip planes keep early depth testing)
+    gl_ClipDistance[0] = in_pos.x - in_rect.x;
+    gl_ClipDistance[1] = in_rect.z - in_pos.x;
+    gl_ClipDistance[2] = in_pos.y - in_rect.y;
+    gl_ClipDistance[3] = in_rect.w - in_pos.y;
+}
+"""
+
+_FS = """
+#version 330
+in vec4 v_attr;
+out vec4 f_color;
+void main() {
+    f_color = v_attr;
+}
+"""
+
+
+def gl_context():
+    """The process-wide headless EGL context (created on first use). Raises if none opens."""
+    global _GL_CONTEXT, _GL_ERROR
+    if _GL_CONTEXT is None:
+        if _GL_ERROR is not None:
+            raise RuntimeError(_GL_ERROR)
+        try:
+            import moderngl
+            _GL_CONTEXT = moderngl.create_context(standalone=True, backend="egl")
+        except Exception as e:  # no libEGL, no device, driver refuses...
+            _GL_ERROR = f"cannot open a headless EGL context: {type(e).__name__}: {e}"
+            raise RuntimeError(_GL_ERROR) from None
+    return _GL_CONTEXT
+
+
+class GLRenderer(Renderer):
+    """moderngl back end. All windows of a draw share one float framebuffer (the atlas)."""
+
+    name = "gl"
+
+    def __init__(self):
+        import moderngl
+        self._mgl = moderngl
+        self.ctx = gl_context()
+        self.prog = self.ctx.program(vertex_shader=_VS, fragment_shader=_FS)
+        self._fbo, self._fbo_size = None, None
+
+    def max_atlas_px(self):
+        return min(8192, int(self.ctx.info.get("GL_MAX_TEXTURE_SIZE", 8192)))
+
+    def _framebuffer(self, size):
+        H, W = size
+        need = (max(W, 256), max(H, 256))
+        if self._fbo is None or self._fbo_size[0] < need[0] or self._fbo_size[1] < need[1]:
+            if self._fbo is not None:
+                self._fbo.release()
+                self._color.release()
+                self._depth.release()
+            sz = (max(need[0], self._fbo_size[0] if self._fbo_size else 0),
+                  max(need[1], self._fbo_size[1] if self._fbo_size else 0))
+            self._color = self.ctx.texture(sz, 4, dtype="f4")
+            self._depth = self.ctx.depth_renderbuffer(sz)
+            self._fbo = self.ctx.framebuffer([self._color], self._depth)
+            self._fbo_size = sz
+        return self._fbo
+
+    def _raster(self, pos, attrs, rect, size):
+        H, W = size
+        mgl = self._mgl
+        fbo = self._framebuffer(size)
+        fbo.use()
+        fbo.viewport = (0, 0, W, H)
+        self.ctx.disable(mgl.CULL_FACE | mgl.BLEND)
+        self.ctx.enable(mgl.DEPTH_TEST)
+        self.ctx.depth_func = "<"
+        for i in range(4):
+            self.ctx.enable_direct(0x3000 + i)          # GL_CLIP_DISTANCE0..3
+        fbo.clear(red=-1.0, green=0.0, blue=0.0, alpha=0.0, depth=1.0, viewport=(0, 0, W, H))
+        if len(pos):
+            n = len(pos)
+            data = np.empty((n, 3, 11), np.float32)
+            data[..., 0:3] = pos
+            data[..., 3:7] = attrs
+            data[..., 7:11] = rect[:, None, :]
+            vbo = self.ctx.buffer(data.tobytes())
+            vao = self.ctx.vertex_array(self.prog, [(vbo, "3f 4f 4f", "in_pos", "in_attr", "in_rect")])
+            self.prog["size"].value = (float(W), float(H))
+            vao.render(mgl.TRIANGLES)
+            vao.release()
+            vbo.release()
+        raw = fbo.read(viewport=(0, 0, W, H), components=4, dtype="f4")
+        return np.frombuffer(raw, np.float32).reshape(H, W, 4).copy()
+
+
+_RENDERERS = {}
+
+
+def make_renderer(backend: str = "auto") -> Renderer:
+    """Renderer for ``render.backend``: ``"gl"``, ``"cpu"`` or ``"auto"``.
+
+    ``auto`` uses gl when a headless EGL context opens and falls back to cpu otherwise, logging
+    why. ``gl`` raises RuntimeError when no context opens. Renderers are cached per process.
+    """
+    if backend not in ("auto", "gl", "cpu"):
+        from stages import InputError
+        raise InputError(f"render.backend: {backend!r} is not one of auto, gl, cpu")
+    if backend in _RENDERERS:
+        return _RENDERERS[backend]
+    if backend == "cpu":
+        r = CPURenderer()
+    elif backend == "gl":
+        r = GLRenderer()
+    else:
+        try:
+            r = make_renderer("gl")
+        except Exception as e:
+            log.warning("render.backend auto: using the cpu back end (%s)", e)
+            r = make_renderer("cpu")
+    _RENDERERS[backend] = r
+    return r
