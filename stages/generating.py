@@ -48,6 +48,7 @@ PARAMS = ("tool", "render")
 ID_W, ID_T1, ID_T2, ID_M = 0, 1, 2, 3
 STEEP_DEG = 60.0          # claim 6: re-render along the normal above this contact angle
 PASSES_PER_BATCH = 8
+_redo_when_lost = True     # claim 6 also when nothing survives from below (tests switch it off)
 N_PHI = 180
 
 
@@ -229,7 +230,7 @@ def generating(pg, shape, wp, renderer, px_per_mm, predict_idx, pred_tips, flute
                 _store(gen, slot, views[k], M, surv, q, phi, fd[k], "below")
                 if q > STEEP_DEG:
                     redo.append((k, q, phi))
-            elif cut.any():
+            elif cut.any() and _redo_when_lost:
                 # nothing survives from below: estimate the place from the cut pixels closest
                 # to surviving (smallest depth margin behind T2)
                 with np.errstate(invalid="ignore"):

@@ -1,0 +1,145 @@
+"""Generating points (claims 1, 4, 6) and engagement (claim 5).
+
+The cylinder benchmark of seed 000 Fig. 16 (tests/cylinder_case.py): the generating point of a
+contour level is analytic (the line from the ball centre to the cylinder axis meets the surface),
+so its contact angle is the level's angle and its rotation angle 90° or 270° (feed ±Y).
+"""
+import numpy as np
+import pyarrow as pa
+import pytest
+
+from stages import angle_prune, cut_filter, generating
+from stages import geometry as geo
+from stages.generating import unpack_engagement
+from stages.render import make_renderer
+from tests.cylinder_case import TOOL, cylinder_case
+
+
+def _gl_available():
+    try:
+        make_renderer("gl")
+        return True
+    except Exception:
+        return False
+
+
+@pytest.fixture(scope="module")
+def cylinder(tmp_path_factory):
+    passes, stock, q_ref, phi_ref, rc = cylinder_case()
+    path = str(tmp_path_factory.mktemp("cyl") / "stock.stl")
+    stock.export(path)
+    return passes, path, q_ref, phi_ref
+
+
+def test_cylinder_benchmark_fig16(cylinder):
+    """Contact angle ≤ 0.5° RMS / 1° max, rotation ≤ 1° RMS over 0–89°, no pass lost."""
+    passes, path, q_ref, phi_ref = cylinder
+    params = {"tool": TOOL, "render": {"backend": "auto", "px_per_mm": 20},
+              "prune": {"min_contact_deg": 0.0}}
+    cf = cut_filter.run({"passes": passes, "stock": path}, params)["cut_filter"]
+    ap = angle_prune.run({"passes": passes, "stock": path, "cut_filter": cf}, params)["angle_prune"]
+    out = generating.run({"passes": passes, "stock": path, "cut_filter": cf, "angle_prune": ap}, params)
+    g = out["generating"].to_pandas().set_index("pass_id")
+    levels = np.nonzero(np.isfinite(q_ref))[0]
+    assert len(levels) == 51 and q_ref[levels].min() == 0 and q_ref[levels].max() == pytest.approx(89)
+    # no pass lost, also on the steepest walls
+    assert set(levels) <= set(g.index)
+    got = g.loc[levels]
+    assert (got.view != "none").all() and (got.n_px > 0).all()
+    dq = got.contact_deg.to_numpy() - q_ref[levels]
+    dphi = (got.rotation_deg.to_numpy() - phi_ref[levels] + 180) % 360 - 180
+    tip = q_ref[levels] == 0                       # φ is undefined at the tip (q = 0)
+    q_rms, q_max = np.sqrt(np.mean(dq ** 2)), np.abs(dq).max()
+    phi_rms = np.sqrt(np.mean(dphi[~tip] ** 2))
+    print(f"\ncylinder Fig.16, {make_renderer('auto').name}: {len(levels)} levels 0-89°, "
+          f"q err RMS {q_rms:.3f}° max {q_max:.3f}°, phi err RMS {phi_rms:.3f}° "
+          f"(max {np.abs(dphi[~tip]).max():.3f}°), views {got.view.value_counts().to_dict()}")
+    assert q_rms <= 0.5 and q_max <= 1.0
+    assert phi_rms <= 1.0
+    # claim 6: steep surfaces were re-rendered along the normal
+    assert (got.view[q_ref[levels] > 62] == "normal").all()
+    # normal = out of the material: on the cylinder, radial
+    n = got[["nx", "ny", "nz"]].to_numpy()
+    qr = np.radians(q_ref[levels])
+    assert np.all(np.einsum("ij,ij->i", n, np.stack([np.sin(qr), 0 * qr, np.cos(qr)], 1)) > np.cos(np.radians(1)))
+    # generating point on the machined cylinder (radius rc) within a fraction of the pitch
+    rc = 0.63 / np.radians(89 / 50)
+    r = np.hypot(got.gen_x_mm, got.gen_z_mm)
+    assert np.all(np.abs(r - rc) < 0.02)
+    # engagement rows for the same passes
+    e = out["engagement"]
+    assert e.column("pass_id").to_pylist() == out["generating"].column("pass_id").to_pylist()
+
+
+def test_gl_and_cpu_agree_on_generating_points(cylinder):
+    if not _gl_available():
+        pytest.skip("gl back end unavailable (no EGL context)")
+    passes, path, q_ref, _ = cylinder
+    shape = geo.tool_from_params(TOOL)
+    pg = geo.pass_geometry(passes, TOOL)
+    wp = geo.load_workpiece(path)
+    levels = np.nonzero(np.isfinite(q_ref))[0][[0, 17, 35, 48]]      # 0°, 30°, 62°, 85.4°
+    tips = 0.5 * (pg.p0[levels] + pg.p1[levels])
+    res = {b: generating.generating(pg, shape, wp, make_renderer(b), 20.0, levels, tips, 2)[0]
+           for b in ("cpu", "gl")}
+    assert list(res["cpu"]["view"]) == list(res["gl"]["view"])
+    dq = np.abs(res["cpu"]["contact_deg"] - res["gl"]["contact_deg"])
+    print(f"\ngl vs cpu |dq| per pass: {np.round(dq, 4)}")
+    assert dq.max() <= 0.2
+
+
+def test_view_correction_needed_on_steep_walls(cylinder, monkeypatch):
+    """Without claim 6 the steepest levels are lost or worse; with it they are found."""
+    passes, path, q_ref, _ = cylinder
+    shape = geo.tool_from_params(TOOL)
+    pg = geo.pass_geometry(passes, TOOL)
+    wp = geo.load_workpiece(path)
+    levels = np.nonzero(np.isfinite(q_ref))[0][-3:]                   # 85.4°, 87.2°, 89°
+    tips = 0.5 * (pg.p0[levels] + pg.p1[levels])
+    r = make_renderer("auto")
+    with_vc = generating.generating(pg, shape, wp, r, 20.0, levels, tips, 2)[0]
+    monkeypatch.setattr(generating, "STEEP_DEG", 1000.0)
+    monkeypatch.setattr(generating, "_redo_when_lost", False)
+    without = generating.generating(pg, shape, wp, r, 20.0, levels, tips, 2)[0]
+    err_with = np.abs(with_vc["contact_deg"] - q_ref[levels])
+    err_without = np.abs(np.nan_to_num(without["contact_deg"], nan=0.0) - q_ref[levels])
+    print(f"\nsteep levels {q_ref[levels]}: n_px from below {without['n_px']}, "
+          f"|dq| without {np.round(err_without, 2)} with {np.round(err_with, 2)}")
+    assert np.all(with_vc["view"] == "normal") and err_with.max() < 1.0
+    assert err_without.max() > err_with.max()
+
+
+def test_engagement_of_a_slot_matches_closed_form():
+    """First pass into a fresh box: engaged = below the top face and ahead of the T1 sweep.
+
+    A point of the ball envelope at height z, angle φ (radius r(z)) is inside the sweep of the
+    ball up to p - f iff r cos φ < -f/2 (closed form of the distance to the centre line).
+    """
+    a, R, f = 2.0, 5.0, 0.5
+    tool = {"type": "ball", "diameter_mm": 10.0, "flutes": 2, "stickout_mm": 30.0}
+    n = 1
+    passes = pa.table({
+        "program_id": ["slot"], "pass_id": pa.array([0], pa.int32()),
+        "block_no": pa.array([0], pa.int32()), "line_no": pa.array([1], pa.int32()),
+        "motion": pa.array([1], pa.int8()),
+        "x0_mm": [-20.0], "y0_mm": [0.0], "z0_mm": [-a], "x1_mm": [20.0], "y1_mm": [0.0], "z1_mm": [-a],
+        "feed_mm_min": [f * 2 * 1000.0], "spindle_rpm": [1000.0], "tool": pa.array([1] * n, pa.int32()),
+        "t_start_s": [0.0], "t_end_s": [1.0]})
+    stock = {"box": [-30, -30, -10, 30, 30, 0]}
+    params = {"tool": tool, "render": {"backend": "auto", "px_per_mm": 20}}
+    cf = pa.table({"pass_id": pa.array([0], pa.int32()), "is_cutting": [True],
+                   "pred_x_mm": [0.0], "pred_y_mm": [0.0], "pred_z_mm": [-a]})
+    ap = pa.table({"pass_id": pa.array([0], pa.int32()), "predict": [True]})
+    out = generating.run({"passes": passes, "stock": stock, "cut_filter": cf, "angle_prune": ap}, params)
+    row = out["engagement"].to_pylist()[0]
+    assert row["dz_mm"] == pytest.approx(R / 45) and row["n_phi"] == 180
+    assert (row["feed_dir_x"], row["feed_dir_y"]) == pytest.approx((1.0, 0.0))
+    E, z, phi = unpack_engagement(row)
+    assert E.shape == (row["n_z"], 180)
+    assert z[-1] < a + row["dz_mm"]                        # levels stop at the engaged height
+    r = np.sqrt(np.clip(R ** 2 - (R - z) ** 2, 0, None))
+    ref = (z[:, None] < a) & (r[:, None] * np.cos(np.radians(phi))[None] > -f / 2)
+    # disagreements only on boundary cells (one pixel / one level)
+    assert np.mean(E == ref) > 0.98
+    # the engaged arc at the bottom level spans the front half: from ~-90° to ~+90° around 0°
+    assert E[0, (phi < 60) | (phi > 300)].all() and not E[0, (phi > 120) & (phi < 240)].any()

@@ -1,0 +1,107 @@
+"""Tool envelopes, swept volumes and workpieces against closed forms and brute force."""
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from stages import InputError
+from stages import geometry as geo
+from stages.render import CPURenderer, View, make_scene
+
+TOOLS = {
+    "ball": {"type": "ball", "diameter_mm": 10.0, "stickout_mm": 20.0},
+    "bull": {"type": "bull", "diameter_mm": 10.0, "corner_radius_mm": 2.0, "stickout_mm": 20.0},
+    "flat": {"type": "flat", "diameter_mm": 10.0, "stickout_mm": 20.0},
+}
+
+
+def _profile_boundary(shape, n=200_000):
+    """Dense samples of the closed (r, z) profile outline, written independently of the mesh."""
+    R, rc, H = shape.radius_mm, shape.corner_mm, shape.stickout_mm
+    t = np.linspace(0, 1, n)
+    parts = [np.stack([t * (R - rc), 0 * t], 1)]                          # bottom
+    a = t * np.pi / 2
+    parts.append(np.stack([R - rc + rc * np.sin(a), rc - rc * np.cos(a)], 1))  # corner arc
+    parts.append(np.stack([R + 0 * t, rc + t * (H - rc)], 1))             # side
+    parts.append(np.stack([t * R, H + 0 * t], 1))                          # cap
+    return np.concatenate(parts)
+
+
+@pytest.mark.parametrize("kind", sorted(TOOLS))
+@pytest.mark.parametrize("tol", [0.05, 0.005])
+def test_envelope_within_tolerance_and_inside(kind, tol):
+    shape = geo.tool_from_params(TOOLS[kind])
+    mesh = geo.envelope_mesh(shape, tol)
+    rng = np.random.default_rng(0)
+    u = rng.random((len(mesh.tris), 4, 2))
+    flip = u.sum(-1) > 1
+    u[flip] = 1 - u[flip]
+    pts = (mesh.tris[:, None, 0] * (1 - u.sum(-1))[..., None] + mesh.tris[:, None, 1] * u[..., :1]
+           + mesh.tris[:, None, 2] * u[..., 1:]).reshape(-1, 3)
+    rz = np.stack([np.hypot(pts[:, 0], pts[:, 1]), pts[:, 2]], 1)
+    dist, _ = cKDTree(_profile_boundary(shape)).query(rz)
+    assert dist.max() <= tol, f"{kind}: mesh deviates {dist.max():.4g} mm > tol {tol}"
+    # inscribed: never outside the true envelope (the radius at that height)
+    assert np.all(rz[:, 0] <= shape.profile_radius(np.clip(rz[:, 1], 0, None)) + 1e-9)
+    # normals point outward
+    c = mesh.tris.mean(1)
+    n = mesh.face_normals[mesh.face_of_tri]
+    axis_pt = np.stack([0 * c[:, 0], 0 * c[:, 0], np.clip(c[:, 2], shape.corner_mm, shape.stickout_mm - 1)], 1)
+    assert np.all(np.einsum("ij,ij->i", n, c - axis_pt) > -1e-9)
+
+
+@pytest.mark.parametrize("kind", sorted(TOOLS))
+def test_sweep_from_below_matches_brute_force(kind):
+    """Rendered lowest surface of a sweep = lower envelope of densely sampled tool positions."""
+    shape = geo.tool_from_params(TOOLS[kind])
+    tol = 0.01
+    mesh = geo.envelope_mesh(shape, tol)
+    p0, p1 = np.array([-3.0, -2.0, 0.0]), np.array([4.0, 3.0, -1.5])   # inclined, diagonal
+    tris, q, _ = geo.sweep_triangles(mesh, p0[None], p1[None], view_dir=(0, 0, 1))
+    view = View((0.5, 0.5, 0.0), (0, 0, 1.0), (0, 1.0, 0), 22, 22, 10, -10, 30)
+    im = CPURenderer().render([view], make_scene(tris, 0, 1, b=q))[0]
+    rows, cols = np.nonzero(im.id >= 0)
+    xy = view.pixel_points(rows, cols, 0 * rows)[:, :2]
+    ref = geo.sweep_lowest_z(shape, p0, p1, xy, n_t=4001)
+    # compare where the true surface is at most 60° steep (vertical error <= tol / cos 60°)
+    zr = np.full(im.id.shape, np.nan)
+    zr[rows, cols] = ref
+    gy, gx = np.gradient(zr, 1 / view.px_per_mm)
+    gentle = (np.hypot(gx, gy) <= np.tan(np.radians(60)))[rows, cols]
+    err = im.depth[rows, cols] - ref
+    assert gentle.sum() > 10000
+    assert err[gentle].max() <= 2 * tol + 1e-3      # the mesh is inside: never lower ...
+    assert err[gentle].min() >= -1e-3               # ... than the true sweep
+    # the footprint is right: every pixel whose centre the brute force covers is drawn
+    allpix = view.pixel_points(*np.indices(im.id.shape).reshape(2, -1), 0)[:, :2]
+    ref_all = geo.sweep_lowest_z(shape, p0, p1, allpix, n_t=801).reshape(im.id.shape)
+    inside = np.isfinite(ref_all)
+    assert np.mean((im.id >= 0) == inside) > 0.995
+
+
+def test_bands_vertical_plunge_and_zero_length():
+    mesh = geo.envelope_mesh(geo.tool_from_params(TOOLS["ball"]), 0.05)
+    t, q, o = geo.sweep_bands(mesh, [[0, 0, 5.0], [1, 1, 1.0]], [[0, 0, 0.0], [1, 1, 1.0]])
+    assert len(t) > 0 and set(np.unique(o)) == {0}            # zero-length pass: no band
+    # plunge: bands lie on the cylinder r = R (silhouette = equator)
+    r = np.hypot(t[..., 0], t[..., 1])
+    assert np.allclose(r, 5.0, atol=1e-9)
+
+
+def test_tool_params_and_workpieces(tmp_path):
+    with pytest.raises(InputError, match="corner_radius_mm"):
+        geo.tool_from_params({"type": "bull", "diameter_mm": 10, "corner_radius_mm": 6})
+    with pytest.raises(InputError, match="tool.type"):
+        geo.tool_from_params({"type": "drill", "diameter_mm": 10})
+    box = geo.load_workpiece({"box": [0, 0, -5, 10, 20, 0]})
+    assert np.allclose(box.bounds, [[0, 0, -5], [10, 20, 0]])
+    # outward normals: the top face points up
+    top = box.tris[:, :, 2].min(1) > -1e-9
+    assert np.all(box.normals[top, 2] > 0.99)
+    import trimesh
+    path = tmp_path / "s.stl"
+    trimesh.creation.box(bounds=[[0, 0, -5], [10, 20, 0]]).export(path)
+    assert np.allclose(geo.load_workpiece(str(path)).bounds, box.bounds)
+    with pytest.raises(InputError, match="not found"):
+        geo.load_workpiece(str(tmp_path / "missing.stl"))
+    with pytest.raises(InputError, match="stock"):
+        geo.load_workpiece(None)
