@@ -170,13 +170,25 @@ def _pick(v, t, key):
 
 
 def _format_error(path: Path, err: ValidationError) -> str:
-    lines = [f"{path}: invalid workflow"]
+    """One line per problem, with the key path as the user wrote it (``tool.diameter_mm``).
+
+    Pydantic reports every branch of a union (``tool`` may be one tool or a list); the branch that
+    only says "wrong container type" is dropped when another branch says something specific.
+    """
+    items = []
     for e in err.errors():
-        loc = ".".join(str(p) for p in e["loc"] if not (isinstance(p, str) and p[:1].isupper() or p in ("list[Tool]", "list[Material]", "str", "list[str]", "Box")))
-        msg = e["msg"]
-        if e["type"] == "extra_forbidden":
-            msg = "unknown key"
-        lines.append(f"  {loc or '<top>'}: {msg} (got {e.get('input')!r})")
+        loc = ".".join(str(p) for p in e["loc"] if not (isinstance(p, str) and ("[" in p or "(" in p)))
+        msg = "unknown key" if e["type"] == "extra_forbidden" else e["msg"]
+        items.append((loc or "<top>", msg, e["type"], e.get("input")))
+    specific = {loc for loc, _, typ, _ in items if not typ.endswith(("_type", "union_tag_invalid"))}
+    lines, seen = [f"{path}: invalid workflow"], set()
+    for loc, msg, typ, inp in items:
+        generic = typ.endswith("_type")
+        if generic and any(s == loc or s.startswith(loc + ".") for s in specific):
+            continue
+        if (loc, msg) not in seen:
+            seen.add((loc, msg))
+            lines.append(f"  {loc}: {msg} (got {inp!r})")
     return "\n".join(lines)
 
 

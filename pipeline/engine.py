@@ -34,20 +34,10 @@ from stages import InputError
 
 # Stage modules in execution order. A stage runs once per program partition.
 STAGE_MODULES = ["stages.parse", "stages.split"]
-_OPTIONAL_STAGE_MODULES = ["stages.cut_filter", "stages.angle_prune", "stages.generating",
-                           "stages.forces", "stages.deflection", "stages.errors"]
 
 
-def load_stages(names: Optional[list[str]] = None) -> list:
-    mods = [importlib.import_module(m) for m in STAGE_MODULES]
-    for m in _OPTIONAL_STAGE_MODULES:
-        try:
-            mods.append(importlib.import_module(m))
-        except ModuleNotFoundError as e:  # a stage not built yet; its successors cannot run either
-            if e.name != m:
-                raise
-            break
-    return mods
+def load_stages() -> list:
+    return [importlib.import_module(m) for m in STAGE_MODULES]
 
 
 @dataclass

@@ -1,0 +1,240 @@
+"""Engine: cache, incrementality, crash resume, real Dask cluster, bad input, workflow errors."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import duckdb
+import pandas as pd
+import pytest
+import yaml
+from click.testing import CliRunner
+
+from pipeline.cli import main
+from pipeline.config import WorkflowError, load_workflow
+from tests.ncprograms import raster_program
+
+WF = {
+    "name": "t",
+    "programs": "nc/*.nc",
+    "stock": {"box": [-5, -5, -5, 120, 120, 1]},
+    "tool": {"type": "ball", "diameter_mm": 6, "flutes": 2},
+    "material": {"name": "FCD550", "ktc": 2000, "krc": 700, "kac": 300},
+    "output": "out",
+}
+
+
+def make_project(root: Path, n_programs: int = 3, blocks: int = 2000, wf: dict | None = None) -> Path:
+    (root / "nc").mkdir(parents=True, exist_ok=True)
+    for i in range(n_programs):
+        (root / "nc" / f"p{i:02d}.nc").write_bytes(raster_program(blocks, seed=i))
+    path = root / "wf.yaml"
+    path.write_text(yaml.safe_dump(wf or WF))
+    return path
+
+
+def run_cli(*args) -> tuple[int, str]:
+    r = CliRunner().invoke(main, list(args), catch_exceptions=False)
+    return r.exit_code, r.output
+
+
+def run_json(out: Path) -> dict:
+    return json.loads((out / "run.json").read_text())
+
+
+def stage(summary: dict, name: str) -> dict:
+    return next(s for s in summary["stages"] if s["name"] == name)
+
+
+def read_table(out: Path, name: str) -> pd.DataFrame:
+    df = pd.read_parquet(out / "tables" / name)
+    keys = [c for c in ("program_id", "pass_id", "block_no") if c in df]
+    return df.sort_values(keys).reset_index(drop=True)
+
+
+def test_run_tables_queryable_and_second_run_served_from_cache(tmp_path):
+    wf = make_project(tmp_path)
+    code, out = run_cli("run", str(wf), "--workers", "1", "-q")
+    assert code == 0, out
+    o = tmp_path / "out"
+    n_passes = duckdb.sql(f"select count(*) from read_parquet('{o}/tables/passes/*.parquet')").fetchall()[0][0]
+    progs = read_table(o, "programs")
+    assert list(progs.status) == ["ok"] * 3 and progs.n_passes.sum() == n_passes > 1000
+    s1 = run_json(o)
+    assert stage(s1, "parse")["computed"] == 3 and s1["counts"]["passes"] == n_passes
+
+    code, out = run_cli("run", str(wf), "-q")
+    assert code == 0
+    s2 = run_json(o)
+    for st in s2["stages"]:
+        assert st["computed"] == 0 and st["cached"] == st["partitions"] == 3
+        assert st["wall_s"] < 1.0, st
+    pd.testing.assert_frame_equal(read_table(o, "passes"), read_table(o, "passes"))
+    code, out = run_cli("status", str(wf))
+    assert "parse" in out and "3" in out
+
+
+def test_changes_invalidate_exactly_what_depends_on_them(tmp_path):
+    wf_path = make_project(tmp_path)
+    o = tmp_path / "out"
+    assert run_cli("run", str(wf_path), "--workers", "1", "-q")[0] == 0
+    # a split parameter: parse stays cached, split recomputes
+    wf = dict(WF, split={"max_pass_mm": 2.0})
+    wf_path.write_text(yaml.safe_dump(wf))
+    assert run_cli("run", str(wf_path), "--workers", "1", "-q")[0] == 0
+    s = run_json(o)
+    assert stage(s, "parse")["cached"] == 3 and stage(s, "split")["computed"] == 3
+    # a material coefficient: neither parse nor split depends on it
+    wf["material"] = dict(WF["material"], ktc=2500)
+    wf_path.write_text(yaml.safe_dump(wf))
+    assert run_cli("run", str(wf_path), "--until", "split", "-q")[0] == 0
+    s = run_json(o)
+    assert stage(s, "parse")["cached"] == 3 and stage(s, "split")["cached"] == 3
+    # nightly: one new program and one edited program → only those two are parsed
+    (tmp_path / "nc" / "p99.nc").write_bytes(raster_program(1000, seed=99))
+    (tmp_path / "nc" / "p00.nc").write_bytes(raster_program(1000, seed=42))
+    assert run_cli("run", str(wf_path), "--workers", "1", "--until", "split", "-q")[0] == 0
+    s = run_json(o)
+    assert stage(s, "parse")["computed"] == 2 and stage(s, "parse")["cached"] == 2
+    assert sorted(read_table(o, "programs").program_id) == ["p00", "p01", "p02", "p99"]
+
+
+def test_stage_version_bump_invalidates_that_stage_and_its_successors(tmp_path, monkeypatch):
+    from pipeline.engine import Run
+    wf_path = make_project(tmp_path, n_programs=1)
+    Run(str(wf_path)).execute(workers=1, progress=False)
+    import stages.parse
+    monkeypatch.setattr(stages.parse, "VERSION", stages.parse.VERSION + "-test")
+    r = Run(str(wf_path))
+    rows = {row["stage"]: row for row in r.status()}
+    assert rows["parse"]["pending"] == 1 and rows["split"]["pending"] == 1
+
+
+def _cli_cmd(*args):
+    return [sys.executable, "-c", "from pipeline.cli import main; main()", *args]
+
+
+def test_sigkill_mid_run_then_rerun_equals_uninterrupted_run(tmp_path):
+    wf_path = make_project(tmp_path, n_programs=12, blocks=60000)
+    o_killed, o_clean = tmp_path / "killed", tmp_path / "clean"
+    proc = subprocess.Popen(_cli_cmd("run", str(wf_path), "--out", str(o_killed), "--workers", "1", "-q"),
+                            start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    cache = o_killed / "cache" / "parse"
+    deadline = time.time() + 120
+    while time.time() < deadline:
+        done = [p for p in cache.glob("*/*") if not p.name.startswith(".")] if cache.exists() else []
+        if len(done) >= 2:
+            break
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)  # the CLI and its Dask worker processes
+    proc.wait()
+    partial = len([p for p in cache.glob("*/*") if not p.name.startswith(".")])
+    assert 2 <= partial < 12, f"kill did not land mid-run ({partial} of 12 parsed)"
+    assert not (o_killed / "run.json").exists()
+
+    r = subprocess.run(_cli_cmd("run", str(wf_path), "--out", str(o_killed), "--workers", "1", "-q"),
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    s = run_json(o_killed)
+    assert stage(s, "parse")["cached"] >= partial and stage(s, "parse")["computed"] == 12 - stage(s, "parse")["cached"]
+    r = subprocess.run(_cli_cmd("run", str(wf_path), "--out", str(o_clean), "--workers", "1", "-q"),
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    for t in ("programs", "passes", "blocks"):
+        a, b = read_table(o_killed, t), read_table(o_clean, t)
+        if "path" in a:
+            a, b = a.drop(columns="path"), b.drop(columns="path")
+        pd.testing.assert_frame_equal(a, b)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_existing_dask_cluster_on_loopback(tmp_path):
+    wf_path = make_project(tmp_path, n_programs=2)
+    port = _free_port()
+    addr = f"tcp://127.0.0.1:{port}"
+    procs = [subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
+                               "--port", str(port), "--dashboard-address", ":0"],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    try:
+        time.sleep(1.5)
+        procs.append(subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", addr, "--nthreads", "1",
+                                       "--nworkers", "1", "--dashboard-address", ":0", "--host", "127.0.0.1"],
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        from distributed import Client
+        with Client(addr, timeout="30s") as c:
+            c.wait_for_workers(1, timeout=60)
+        code, out = run_cli("run", str(wf_path), "--scheduler", addr, "--out", str(tmp_path / "remote"), "-q")
+        assert code == 0, out
+        assert run_json(tmp_path / "remote")["stages"][0]["computed"] == 2
+        code, _ = run_cli("run", str(wf_path), "--workers", "1", "--out", str(tmp_path / "local"), "-q")
+        pd.testing.assert_frame_equal(read_table(tmp_path / "remote", "passes"), read_table(tmp_path / "local", "passes"))
+    finally:
+        for p in procs:
+            p.terminate()
+        for p in procs:
+            p.wait(timeout=30)
+
+
+BROKEN = {
+    "truncated.nc": None,  # filled in below from a valid program cut in the middle of a word
+    "garbage.nc": b"%\nG90 G21\nT1 M6\nS9000 M3\nG0 X0 Y0 Z5\n@@@ not g-code @@@\n%\n",
+    "unknown_g.nc": b"G90 G21\nT1 M6\nS9000 M3\nG0 X0 Y0 Z5\nG1 Z0 F200\nG66 X5\n",
+    "bad_arc.nc": b"G90 G21\nT1 M6\nS9000 M3\nG0 X0 Y0 Z5\nG1 Z0 F200\nG2 X10 Y0 I3 J0\n",
+    "no_feed.nc": b"G90 G21\nT1 M6\nS9000 M3\nG0 X0 Y0 Z5\nG1 Z0\n",
+    "junk.nc": bytes(range(256)) * 4,
+}
+EXPECT = {"truncated.nc": ":", "garbage.nc": ":6: unexpected character '@'", "unknown_g.nc": ":6: unknown or unsupported G code G66",
+          "bad_arc.nc": ":6: arc radius inconsistent", "no_feed.nc": ":5: cutting move without a feed",
+          "junk.nc": ":1: binary data"}
+
+
+def test_broken_programs_listed_failed_valid_one_processed(tmp_path):
+    wf_path = make_project(tmp_path, n_programs=1)
+    valid = raster_program(2000)
+    BROKEN["truncated.nc"] = valid[: len(valid) // 2].rsplit(b"\n", 1)[0] + b"\nN99 G2 X1.5 Y"
+    for name, data in BROKEN.items():
+        (tmp_path / "nc" / name).write_bytes(data)
+    code, out = run_cli("run", str(wf_path), "--workers", "1", "-q")
+    assert code == 1
+    progs = read_table(tmp_path / "out", "programs").set_index("program_id")
+    assert progs.loc["p00", "status"] == "ok" and progs.loc["p00", "n_passes"] > 500
+    for name, what in EXPECT.items():
+        row = progs.loc[name[:-3]]
+        assert row.status == "failed"
+        assert row.message.startswith(str(tmp_path / "nc" / name) + ":") and what in row.message, row.message
+        assert row.message in out  # the CLI summary names every failure
+    passes = read_table(tmp_path / "out", "passes")
+    assert set(passes.program_id) == {"p00"}
+    assert len(run_json(tmp_path / "out")["failures"]) == len(BROKEN)
+
+
+@pytest.mark.parametrize("patch,needle", [
+    ({"tool": {"type": "ball", "diameter_mm": 6, "flute": 2}}, "tool.flute: unknown key"),
+    ({"tool": {"type": "ball", "diameter_mm": -6}}, "tool.diameter_mm"),
+    ({"render": {"backend": "vulkan"}}, "render.backend"),
+    ({"prune": {"min_contact_deg": 120}}, "prune.min_contact_deg"),
+    ({"stok": "x.stl"}, "stok: unknown key"),
+    ({"programs": "nothing/*.nc"}, "programs: pattern 'nothing/*.nc' matches no file"),
+])
+def test_workflow_errors_name_the_key(tmp_path, patch, needle):
+    wf_path = make_project(tmp_path, n_programs=1, wf=dict(WF, **patch))
+    code, out = run_cli("run", str(wf_path), "-q")
+    assert code == 2 and needle in out, out
+
+
+def test_repo_workflow_is_valid():
+    root = Path(__file__).resolve().parent.parent
+    for wf in (root / "workflows").glob("*.yaml"):
+        load_workflow(wf)
