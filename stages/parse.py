@@ -131,9 +131,9 @@ def tokenize(data: bytes, path: str):
         raise InputError(f"{path}:1: empty file")
     cls = _CLASS[raw]
     is_nl = cls == _NL
-    nlc = np.cumsum(is_nl, dtype=np.int32)
-    line_of = nlc - is_nl          # 0-based line of every byte
-    n_lines = int(line_of[-1]) + 1
+    # 0-based line of every byte that is not itself a newline (errors and code never are)
+    line_of = np.cumsum(is_nl, dtype=np.int32)
+    n_lines = int(line_of[-1]) + (0 if is_nl[-1] else 1)
 
     ctrl = cls == _CTRL
     if ctrl.any():
@@ -144,7 +144,7 @@ def tokenize(data: bytes, path: str):
 
     # comments: ( ... ) closed on the same line, and ; to the end of the line outside parentheses
     opens, closes = cls == _OPEN, cls == _CLOSE
-    comment = np.zeros(raw.size, bool)
+    comment = None
     if opens.any() or closes.any():
         depth = np.cumsum(opens, dtype=np.int32) - np.cumsum(closes, dtype=np.int32)
         err.add_first(depth < 0, line_of, "')' without '('")
@@ -152,12 +152,17 @@ def tokenize(data: bytes, path: str):
         err.add_first(at_eol != 0, np.arange(at_eol.size), "unbalanced parentheses: comment not closed on its line")
         err.raise_if_any()
         comment = (depth > 0) | closes
-    semi = (cls == _SEMI) & ~comment
+    semi = cls == _SEMI
+    if comment is not None:
+        semi &= ~comment
     if semi.any():
         cs = np.cumsum(semi, dtype=np.int32)
         start_cs = np.concatenate(([0], cs[is_nl]))
-        comment |= (cs - start_cs[line_of]) > 0
-    code = ~comment & (cls != _BLANK) & ~is_nl
+        after_semi = (cs - start_cs[line_of]) > 0
+        comment = after_semi if comment is None else comment | after_semi
+    code = (cls != _BLANK) & ~is_nl
+    if comment is not None:
+        code &= ~comment
     pos = np.flatnonzero(code)
     ln = line_of[pos]
     first_in_line = np.ones(pos.size, bool)
