@@ -56,6 +56,68 @@ def status(workflow, out, as_json):
         click.echo(f"{r['stage']:>12}  {r['done']:>6}  {r['pending']:>7}  {r['blocked']:>7}")
 
 
+@main.command("tool-profile")
+@click.option("--images", "images", required=True, type=click.Path(exists=True, file_okay=False),
+              help="Directory of backlit silhouette images of the rotating tool (tip down).")
+@click.option("--um-per-px", required=True, type=click.FloatRange(min=0, min_open=True), help="Image scale.")
+@click.option("--diameter-mm", required=True, type=click.FloatRange(min=0, min_open=True), help="Nominal diameter.")
+@click.option("--type", "tool_type", type=click.Choice(["ball", "bull"]), default="ball", show_default=True)
+@click.option("--corner-radius-mm", type=float, help="Nominal corner radius (bull-nose).")
+@click.option("--cutoff-deg", type=float, default=5.0, show_default=True, help="Low-pass cutoff (CV1 -> CV2).")
+@click.option("--reference", type=click.Choice(["lsq", "tip"]), default="lsq", show_default=True,
+              help="Axial placement of the ideal profile: least squares, or on the tip.")
+@click.option("--centre-z-px", type=float, help="Centre row of an earlier measurement (wear in a fixed frame).")
+@click.option("--out", "out", required=True, type=click.Path(dir_okay=False), help="Profile CSV to write (+ .json, .png).")
+def tool_profile(images, um_per_px, diameter_mm, tool_type, corner_radius_mm, cutoff_deg, reference, centre_z_px, out):
+    """Tool contour error per contact angle, runout and envelope from silhouette images."""
+    from stages.tool_images_cli import tool_profile_command
+    try:
+        res = tool_profile_command(images, um_per_px, diameter_mm, tool_type, out, corner_radius_mm=corner_radius_mm,
+                                   cutoff_deg=cutoff_deg, reference=reference, centre_z_px=centre_z_px)
+    except InputError as e:
+        click.echo(f"error: {e}", err=True)
+        sys.exit(2)
+    ecc = res.get("eccentricity_um")
+    click.echo(f"{res.get('n_images')} images; eccentricity {ecc} um; wrote {out} (+ .json, .png)")
+
+
+@main.command("calibrate-forces")
+@click.argument("workflow", type=click.Path(dir_okay=False))
+@click.option("--cuts", required=True, type=click.Path(exists=True, dir_okay=False),
+              help="YAML list of measured cuts: file (CSV rotation_deg,fx_n,fy_n,fz_n), axial_depth_mm, "
+                   "radial_width_mm (null = slot), side, feed_mm_min, spindle_rpm.")
+@click.option("--tool", "t", type=int, help="T number of the tool (when the workflow lists several).")
+@click.option("--forces-on", type=click.Choice(["tool", "workpiece"]), default="workpiece", show_default=True,
+              help="What the dynamometer measured (a table dynamometer measures the workpiece).")
+@click.option("--out", "out", type=click.Path(dir_okay=False), help="Write the fit as JSON.")
+def calibrate_forces(workflow, cuts, t, forces_on, out):
+    """Fit the material's cutting coefficients to measured force records (least squares)."""
+    import yaml
+    from pathlib import Path
+    from pipeline.config import load_workflow
+    from stages.calibrate import calibrate_from_csv
+    try:
+        wf, _ = load_workflow(workflow)
+        tool = wf.tool_for(t).model_dump()
+        spec = yaml.safe_load(Path(cuts).read_text())
+        if not isinstance(spec, list) or not spec:
+            raise WorkflowError(f"{cuts}: a list of cuts is expected")
+        base = Path(cuts).resolve().parent
+        paths = []
+        for i, c in enumerate(spec):
+            if not isinstance(c, dict) or "file" not in c:
+                raise WorkflowError(f"{cuts}: cut {i + 1} has no 'file'")
+            paths.append(str(base / c.pop("file")))
+        fit = calibrate_from_csv(paths, spec, tool, forces_on=forces_on)
+    except (WorkflowError, InputError, KeyError) as e:
+        click.echo(f"error: {e}", err=True)
+        sys.exit(2)
+    text = json.dumps(fit, indent=2, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+    if out:
+        Path(out).write_text(text)
+    click.echo(text)
+
+
 def _print_summary(s: dict) -> None:
     c = s["counts"]
     click.echo(f"{s['name']}: {c['programs']} programs ({c['programs_failed']} failed), {c['passes']} passes, "
