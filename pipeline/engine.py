@@ -234,7 +234,16 @@ class Run:
             if client is not None:
                 _close(client)
         tables = self.materialize()
+        report = None
+        if "errors" in tables:
+            from pipeline.report import write_report
+            try:
+                report = write_report(self.out, self.wf.name)
+            except Exception as e:  # a picture must never cost the tables
+                failures.append({"program_id": None, "stage": "report", "message": f"report: {type(e).__name__}: {e}",
+                                 "traceback": traceback.format_exc()})
         summary = self.summary(reports, failures, tables, time.perf_counter() - t_run)
+        summary["report"] = str(report) if report else None
         (self.out / "run.json").write_text(json.dumps(summary, indent=2, default=str))
         return summary
 

@@ -19,7 +19,7 @@ NAME = "deflection"
 VERSION = "1"
 INPUTS = ("forces",)
 OUTPUTS = ("deflection",)
-PARAMS = ("tool", "machine")
+PARAMS = ("tool", "machine.frf")
 
 
 def run(inputs: dict, params: dict, method: str = "fft") -> dict:

@@ -26,7 +26,7 @@ NAME = "split"
 VERSION = "1"
 INPUTS = ("parse_status", "blocks")
 OUTPUTS = ("passes", "programs")
-PARAMS = ("split", "machine", "tool")
+PARAMS = ("split", "machine.rapid_mm_min", "tool")
 
 _XYZ0 = ("x0_mm", "y0_mm", "z0_mm")
 _XYZ1 = ("x1_mm", "y1_mm", "z1_mm")
