@@ -163,35 +163,45 @@ def _pack(views, atlas_px):
 
 
 def _to_atlas(views, scene, offsets):
-    """Atlas-space vertices: (n, 3, 3) [x_px, y_px, depth01], attrs+depth (n, 3, 4), rect (n, 4)."""
-    nv = len(views)
-    C = np.array([v.center for v in views], float)
-    R = np.empty((nv, 3, 3))
-    for i, v in enumerate(views):
-        R[i] = np.stack(v.basis())
-    ppm = np.array([v.px_per_mm for v in views], float)
-    hw = np.array([v.shape for v in views], float)
-    near = np.array([v.near_mm for v in views], float)
-    far = np.array([v.far_mm for v in views], float)
-    off = np.array([(o[1], o[2]) for o in offsets], float)
+    """Atlas-space vertices: (n, 3, 3) [x_px, y_px, depth01], attrs+depth (n, 3, 4), rect (n, 4).
 
-    k = scene.window
-    p = scene.tris - C[k][:, None, :]
-    loc = np.einsum("nij,nkj->nki", R[k], p)                      # (n, 3, 3) right, up, depth
-    x = loc[..., 0] * ppm[k, None] + hw[k, 1, None] / 2
-    y = loc[..., 1] * ppm[k, None] + hw[k, 0, None] / 2
-    dmm = loc[..., 2] + scene.bias[:, None] - near[k, None]
-    span = (far - near)[k, None]
+    ``scene.window`` must be sorted (the renderer sorts it): each window's triangles are then a
+    contiguous block transformed by one small matrix product.
+    """
+    n = len(scene.tris)
+    xyz = np.empty((n, 3, 3), np.float64)
+    rect = np.empty((n, 4), np.float32)
+    bounds = np.empty((n, 2), np.float64)        # width, height of the triangle's window (px)
+    span = np.empty(n, np.float64)
+    starts = np.searchsorted(scene.window, np.arange(len(views) + 1))
+    for w, v in enumerate(views):
+        a, b = starts[w], starts[w + 1]
+        if a == b:
+            continue
+        h, wd = v.shape
+        M = np.stack(v.basis())                                   # rows: right, up, d
+        loc = (scene.tris[a:b] - np.asarray(v.center, float)) @ M.T
+        ox, oy = offsets[w][1], offsets[w][2]
+        xyz[a:b, :, 0] = loc[..., 0] * v.px_per_mm + wd / 2
+        xyz[a:b, :, 1] = loc[..., 1] * v.px_per_mm + h / 2
+        xyz[a:b, :, 2] = loc[..., 2] + scene.bias[a:b, None] - v.near_mm
+        rect[a:b] = (ox, oy, ox + wd, oy + h)
+        bounds[a:b] = (wd, h)
+        span[a:b] = v.far_mm - v.near_mm
+    lo = np.minimum(np.minimum(xyz[:, 0], xyz[:, 1]), xyz[:, 2])   # faster than min(axis=1)
+    hi = np.maximum(np.maximum(xyz[:, 0], xyz[:, 1]), xyz[:, 2])
     # drop triangles entirely outside their window or depth range
-    keep = ((x.max(1) >= 0) & (x.min(1) <= hw[k, 1]) & (y.max(1) >= 0) & (y.min(1) <= hw[k, 0])
-            & (dmm.max(1) >= 0) & (dmm.min(1) <= span[:, 0]))
-    k = k[keep]
-    pos = np.stack([x[keep] + off[k, 0, None], y[keep] + off[k, 1, None],
-                    dmm[keep] / span[keep]], axis=-1)
-    attrs = np.concatenate([scene.attrs[keep].astype(np.float32),
-                            dmm[keep, :, None].astype(np.float32)], axis=-1)
-    rect = np.stack([off[k, 0], off[k, 1], off[k, 0] + hw[k, 1], off[k, 1] + hw[k, 0]], axis=-1)
-    return pos, attrs, rect, k
+    keep = ((hi[:, 0] >= 0) & (lo[:, 0] <= bounds[:, 0]) & (hi[:, 1] >= 0) & (lo[:, 1] <= bounds[:, 1])
+            & (hi[:, 2] >= 0) & (lo[:, 2] <= span))
+    xyz, rect, span = xyz[keep], rect[keep], span[keep]
+    pos = np.empty(xyz.shape, np.float64)
+    pos[..., 0] = xyz[..., 0] + rect[:, None, 0]
+    pos[..., 1] = xyz[..., 1] + rect[:, None, 1]
+    pos[..., 2] = xyz[..., 2] / span[:, None]
+    attrs = np.empty((len(pos), 3, 4), np.float32)
+    attrs[..., :3] = scene.attrs[keep]
+    attrs[..., 3] = xyz[..., 2]
+    return pos, attrs, rect.astype(np.float64), scene.window[keep]
 
 
 class Renderer:
@@ -210,8 +220,10 @@ class Renderer:
         big = max(max(v.shape) for v in views)
         if big > atlas_px:
             atlas_px = min(self.max_atlas_px(), 1 << int(math.ceil(math.log2(big))))
-        order = np.argsort(scene.window, kind="stable")
-        starts = np.searchsorted(scene.window[order], np.arange(len(views) + 1))
+        presorted = bool(np.all(scene.window[1:] >= scene.window[:-1]))
+        order = None if presorted else np.argsort(scene.window, kind="stable")
+        starts = np.searchsorted(scene.window if presorted else scene.window[order],
+                                 np.arange(len(views) + 1))
         counts = np.diff(starts)
         # group windows into draws bounded by atlas area and triangle budget
         offsets = _pack(views, atlas_px)
@@ -225,7 +237,7 @@ class Renderer:
                 j += 1
             sub = views[i:j]
             sub_off = _pack(sub, atlas_px)           # repack from origin for this draw
-            sel = order[starts[i]:starts[j]]
+            sel = slice(starts[i], starts[j]) if presorted else order[starts[i]:starts[j]]
             sc = Scene(scene.tris[sel], scene.attrs[sel], scene.bias[sel], scene.window[sel] - i)
             pos, attrs, rect, _ = _to_atlas(sub, sc, sub_off)
             W = max(o[1] + v.shape[1] for o, v in zip(sub_off, sub))
