@@ -113,6 +113,16 @@ class Split(_Strict):
     merge_max_mm: float = Field(0.5, ge=0)            # short moves merged into passes up to this long
 
 
+class Correct(_Strict):
+    """Corrected NC programs (seed 000 para 0084, seed 003 iteration)."""
+
+    max_move_um: float = Field(50.0, gt=0)   # larger vertex moves are clipped and listed
+    tol_um: float = Field(0.1, gt=0)         # iterate until the largest change is below this
+    max_iter: int = Field(5, ge=1, le=50)
+    ln_normals: bool = False                 # also write Heidenhain-style LN blocks with normals
+    comp_table: bool = False                 # also write a contact-angle compensation table
+
+
 class Box(_Strict):
     box: list[float]
 
@@ -135,6 +145,7 @@ class Workflow(_Strict):
     render: Render = Render()
     prune: Prune = Prune()
     split: Split = Split()
+    correct: Correct = Correct()
     measurements: Optional[str] = None
     output: str = "runs/out"
 
