@@ -1,13 +1,27 @@
 import pyarrow as pa
 
-# DESIGN §6 minimum columns for `corrected`; the stage that fills it may add more here.
+# DESIGN §6 `corrected`: one row per NC vertex (the end point of a G0–G3 block), written by the stage
+# `correct` (seed 000 para 0084). x/y/z_mm: the ORIGINAL program's coordinates (program frame, mm,
+# absolute); x/y/z_new_mm: after all rounds so far. Arcs carry their refitted centre (null for lines).
 SCHEMA = pa.schema([
     pa.field('program_id', pa.string()),
     pa.field('block_no', pa.int32()),
+    pa.field('line_no', pa.int32()),          # 1-based line in the source file
+    pa.field('motion', pa.int8()),            # 0 rapid, 1 linear, 2 cw arc, 3 ccw arc
     pa.field('x_mm', pa.float64()),
     pa.field('y_mm', pa.float64()),
     pa.field('z_mm', pa.float64()),
     pa.field('x_new_mm', pa.float64()),
     pa.field('y_new_mm', pa.float64()),
     pa.field('z_new_mm', pa.float64()),
+    pa.field('cx_new_mm', pa.float64()),      # refitted arc centre (absolute), null for G0/G1
+    pa.field('cy_new_mm', pa.float64()),
+    pa.field('cz_new_mm', pa.float64()),
+    pa.field('move_um', pa.float64()),        # |new − original|, all rounds
+    pa.field('change_um', pa.float64()),      # |move| of the last round (iteration stops below tol_um)
+    pa.field('clipped', pa.bool_()),          # the move was limited to correct.max_move_um
+    pa.field('iteration', pa.int32()),        # rounds of predict → correct run so far
+    pa.field('nx', pa.float64()),             # vertex normal (unit sum of the predicted passes' normals),
+    pa.field('ny', pa.float64()),             # NaN where no predicted pass meets the vertex
+    pa.field('nz', pa.float64()),
 ])

@@ -1,0 +1,392 @@
+"""Stage ``correct``: move NC vertices against the predicted error (seed 000 claim 9, para 0083–0084).
+
+Every NC vertex (the end point of a motion block) is where two passes meet: the pass that ends
+there (i) and the pass that starts there (j). With the predicted errors e (µm, positive = material
+left) and surface normals n (out of material) of those passes, para 0084 forms the correction
+reference vectors E'i = −e_i·n_i and E'j = −e_j·n_j, points the vertex move along E'i + E'j and
+chooses its magnitude s by least squares so that the move best realises both. A pass moved by m
+moves the surface it generates by m·n (a ball, or any axisymmetric tool, touching the surface at
+the point with normal n: the tangential part of m slides along the surface), so with the unit
+direction d the least-squares magnitude is
+
+    s = argmin Σ_k (s·(d·n_k) + e_k)²  =  −Σ e_k (d·n_k) / Σ (d·n_k)².
+
+Two passes with the same normal and error give m = −e·n exactly; perpendicular normals give
+m = −(e_i n_i + e_j n_j), which realises both errors exactly.
+
+- Vertices inside a pass that merges several short blocks get the error of that pass alone.
+- A pass without an error row (pruned, non-cutting, rapid) contributes nothing: a vertex between it
+  and a predicted pass follows the predicted pass; a vertex with no predicted pass on either side
+  does not move.
+- Moves are clipped at ``max_move_um`` (the total move over all iterations); clipped vertices are
+  flagged in the ``clipped`` column.
+- Arcs (G2/G3): the chord points of the arc are moved like vertices, then the arc is refitted by
+  least squares: the centre lies on the perpendicular bisector of the moved end points (so the
+  program stays consistent) at the position that best fits the moved chord points (algebraic
+  circle fit, linear in the one unknown). Full circles fit the centre freely.
+
+Iteration (seed 003, DESIGN §7): :func:`correct_once` takes the *current* blocks (already corrected
+ones on later rounds) and the errors predicted for them, plus the previous ``corrected`` table; it
+accumulates the moves, keeps the original coordinates and counts iterations. :func:`apply_corrected`
+turns a ``corrected`` table back into ``blocks`` (new coordinates and arc centres) for the next
+prediction, and :func:`correct_iteratively` runs the loop around any prediction callable until the
+largest change is below ``tol_um`` or ``max_iter`` rounds have run.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pyarrow as pa
+
+from stages import InputError
+
+NAME = "correct"
+VERSION = "1"
+INPUTS = ("blocks", "passes", "errors")
+OUTPUTS = ("corrected",)
+PARAMS = ("correct",)
+
+DEFAULTS = {"max_move_um": 50.0, "tol_um": 0.1, "max_iter": 5, "ln_normals": False, "comp_table": False}
+_PLANE_AXES = {17: (0, 1, 2), 18: (2, 0, 1), 19: (1, 2, 0)}  # as stages.parse: (first, second, normal)
+_EPS_UM = 1e-9
+
+
+def _col(table: pa.Table, name: str, dtype=float) -> np.ndarray:
+    return table.column(name).to_numpy(zero_copy_only=False).astype(dtype)
+
+
+def _xyz(table: pa.Table, names) -> np.ndarray:
+    if table.num_rows == 0:
+        return np.zeros((0, 3))
+    return np.stack([_col(table, c) for c in names], axis=1)
+
+
+def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b):
+    """Para 0084 move of vertices shared by passes a and b, vectorised.
+
+    Parameters
+    ----------
+    err_a, err_b : (v,) float, errors of the two passes, µm (positive = material left)
+    n_a, n_b : (v, 3) float, unit surface normals (out of material)
+    has_a, has_b : (v,) bool, whether the pass has a prediction (else it does not count)
+
+    Returns
+    -------
+    (v, 3) float, vertex moves in µm.
+    """
+    err_a = np.where(has_a, np.nan_to_num(err_a), 0.0)
+    err_b = np.where(has_b, np.nan_to_num(err_b), 0.0)
+    n_a = np.nan_to_num(n_a)
+    n_b = np.nan_to_num(n_b)
+    wa, wb = has_a.astype(float), has_b.astype(float)
+    ref = -(err_a * wa)[:, None] * n_a - (err_b * wb)[:, None] * n_b   # E'a + E'b
+    size = np.linalg.norm(ref, axis=1)
+    ok = size > _EPS_UM
+    d = ref / np.where(ok, size, 1.0)[:, None]
+    ca = np.einsum("ij,ij->i", d, n_a)
+    cb = np.einsum("ij,ij->i", d, n_b)
+    num = -(wa * err_a * ca + wb * err_b * cb)
+    den = wa * ca ** 2 + wb * cb ** 2
+    ok &= den > 1e-12
+    s = np.where(ok, num / np.where(ok, den, 1.0), 0.0)
+    return s[:, None] * d
+
+
+def _errors_per_pass(passes: pa.Table, errors: pa.Table):
+    """Error, normal and has-flag per pass row (passes in pass_id order)."""
+    pid = _col(passes, "pass_id", np.int64)
+    n = pid.size
+    err = np.zeros(n)
+    nrm = np.zeros((n, 3))
+    has = np.zeros(n, bool)
+    if errors is None or errors.num_rows == 0 or n == 0:
+        return err, nrm, has
+    eid = _col(errors, "pass_id", np.int64)
+    order = np.argsort(pid, kind="stable")
+    pos = np.searchsorted(pid[order], eid)
+    pos_c = np.minimum(pos, n - 1)
+    found = pid[order][pos_c] == eid
+    if not found.all():
+        bad = int(eid[~found][0])
+        raise InputError(f"errors.pass_id {bad}: no such pass in the program")
+    rows = order[pos_c]
+    e = _col(errors, "err_um")
+    nn = _xyz(errors, ("nx", "ny", "nz"))
+    length = np.linalg.norm(nn, axis=1)
+    good = np.isfinite(e) & np.isfinite(length) & (length > 1e-12)
+    err[rows[good]] = e[good]
+    nrm[rows[good]] = nn[good] / length[good, None]
+    has[rows[good]] = True
+    return err, nrm, has
+
+
+def _params(params: dict) -> dict:
+    p = dict(DEFAULTS)
+    p.update((params or {}).get("correct") or {})
+    return p
+
+
+def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: dict,
+                 previous: pa.Table | None = None) -> pa.Table:
+    """One correction round: move every NC vertex of ``blocks`` against ``errors``.
+
+    Parameters
+    ----------
+    blocks : ``blocks`` table of the program as it is now (the original, or the corrected program
+        of the previous round, see :func:`apply_corrected`)
+    passes : ``passes`` table split from ``blocks``
+    errors : ``errors`` table predicted for ``passes`` (rows may be missing: pruned passes)
+    params : dict with ``params["correct"]`` = {max_move_um, ...}
+    previous : the ``corrected`` table of the previous round, or None on the first
+
+    Returns
+    -------
+    ``corrected`` table: one row per motion block (G0–G3), original and new coordinates (mm),
+    new arc centres, total move and this round's change (µm), clipped flag, iteration count.
+    """
+    from schemas.corrected import SCHEMA
+    p = _params(params)
+    max_move = float(p["max_move_um"])
+    motion_all = _col(blocks, "motion", np.int64) if blocks.num_rows else np.zeros(0, np.int64)
+    keep = motion_all <= 3
+    blk = blocks.filter(pa.array(keep)) if not keep.all() else blocks
+    nb = blk.num_rows
+    if nb == 0:
+        return SCHEMA.empty_table()
+    program_id = blk.column("program_id")
+    block_no = _col(blk, "block_no", np.int64)
+    motion = motion_all[keep]
+    end = _xyz(blk, ("x1_mm", "y1_mm", "z1_mm"))
+
+    passes = passes.sort_by("pass_id") if passes.num_rows else passes
+    err, nrm, has = _errors_per_pass(passes, errors)
+    n_pass = passes.num_rows
+    if n_pass:
+        pb0 = _col(passes, "block_no", np.int64)
+        pb1 = _col(passes, "block_end", np.int64)
+        pend = _xyz(passes, ("x1_mm", "y1_mm", "z1_mm"))
+        pstart = _xyz(passes, ("x0_mm", "y0_mm", "z0_mm"))
+        # node k: start of pass k (k < P) / end of pass P−1 (k = P); between passes k−1 and k
+        before = np.arange(n_pass + 1) - 1
+        after = np.arange(n_pass + 1)
+        has_b = np.concatenate(([False], has))
+        has_a = np.concatenate((has, [False]))
+        eb, ea = np.concatenate(([0.0], err)), np.concatenate((err, [0.0]))
+        nb_, na_ = np.vstack([np.zeros((1, 3)), nrm]), np.vstack([nrm, np.zeros((1, 3))])
+        node_move = vertex_moves(eb, nb_, has_b, ea, na_, has_a)
+        node_xyz = np.vstack([pstart, pend[-1:]])
+        node_normal = nb_ * has_b[:, None] + na_ * has_a[:, None]
+        # vertex → node: the last pass starting at or before the block
+        q = np.searchsorted(pb0, block_no, side="right") - 1
+        qc = np.maximum(q, 0)
+        inside = (q >= 0) & (pb1[qc] > block_no)          # interior vertex of a merged pass
+        node = np.where(q < 0, 0, qc + 1)
+        move = node_move[node]
+        move[inside] = vertex_moves(err[qc[inside]], nrm[qc[inside]], has[qc[inside]],
+                                    err[qc[inside]], nrm[qc[inside]], has[qc[inside]])
+        vnormal = node_normal[node]
+        vnormal[inside] = nrm[qc[inside]] * has[qc[inside], None]
+        # pass coordinates are the tool tip; blocks may be the ball centre (control_point: center)
+        frame = np.median(end[~inside] - node_xyz[node[~inside]], axis=0) if (~inside).any() else np.zeros(3)
+    else:
+        move = np.zeros((nb, 3))
+        vnormal = np.zeros((nb, 3))
+        node_move = node_xyz = None
+
+    # accumulate over rounds, clip the total move
+    if previous is not None and previous.num_rows:
+        prev_bn = _col(previous, "block_no", np.int64)
+        if prev_bn.size != nb or np.any(prev_bn != block_no):
+            raise InputError("corrected: previous round has a different block structure than blocks")
+        orig = _xyz(previous, ("x_mm", "y_mm", "z_mm"))
+        iteration = int(_col(previous, "iteration", np.int64).max()) + 1
+        prev_n = _xyz(previous, ("nx", "ny", "nz"))
+    else:
+        orig = end.copy()
+        iteration = 1
+        prev_n = np.full((nb, 3), np.nan)
+    total_um = (end - orig) * 1000.0 + move
+    size = np.linalg.norm(total_um, axis=1)
+    clipped = size > max_move * (1 + 1e-12)
+    total_um[clipped] *= (max_move / size[clipped])[:, None]
+    new = orig + total_um / 1000.0
+    change_um = np.linalg.norm((new - end) * 1000.0, axis=1)
+
+    vlen = np.linalg.norm(vnormal, axis=1)
+    vn = np.where(vlen[:, None] > 1e-12, vnormal / np.where(vlen > 1e-12, vlen, 1.0)[:, None], np.nan)
+    vn = np.where(np.isnan(vn) & ~np.isnan(prev_n), prev_n, vn)   # keep last round's normal
+
+    centre = np.full((nb, 3), np.nan)
+    arc = (motion == 2) | (motion == 3)
+    if arc.any():
+        centre[arc] = _refit_arcs(blk, arc, end, new, orig, max_move, passes, node_move, node_xyz,
+                                  frame if n_pass else np.zeros(3))
+
+    return pa.table({
+        "program_id": program_id,
+        "block_no": block_no.astype(np.int32),
+        "line_no": _col(blk, "line_no", np.int32),
+        "motion": motion.astype(np.int8),
+        "x_mm": orig[:, 0], "y_mm": orig[:, 1], "z_mm": orig[:, 2],
+        "x_new_mm": new[:, 0], "y_new_mm": new[:, 1], "z_new_mm": new[:, 2],
+        "cx_new_mm": pa.array(centre[:, 0], mask=~arc), "cy_new_mm": pa.array(centre[:, 1], mask=~arc),
+        "cz_new_mm": pa.array(centre[:, 2], mask=~arc),
+        "move_um": np.linalg.norm(total_um, axis=1),
+        "change_um": change_um,
+        "clipped": clipped,
+        "iteration": np.full(nb, iteration, np.int32),
+        "nx": vn[:, 0], "ny": vn[:, 1], "nz": vn[:, 2],
+    }, schema=SCHEMA)
+
+
+def _refit_arcs(blk, arc, end, new, orig, max_move, passes, node_move, node_xyz, frame):
+    """New centres (absolute mm) of the arc rows, fitted through their moved chord points."""
+    rows = np.flatnonzero(arc)
+    na = rows.size
+    # start of an arc = new end of the previous motion block (the first block starts where it ends)
+    new_start = np.vstack([new[:1], new[:-1]])[rows]
+    old_start = _xyz(blk, ("x0_mm", "y0_mm", "z0_mm"))[rows]
+    old_end, new_end = end[rows], new[rows]
+    old_centre = _xyz(blk, ("cx_mm", "cy_mm", "cz_mm"))[rows]
+    plane = _col(blk, "plane", np.int64)[rows]
+    bno = _col(blk, "block_no", np.int64)[rows]
+    lut = np.zeros((20, 3), np.int64)
+    for pl, ax in _PLANE_AXES.items():
+        lut[pl] = ax
+    axes = lut[np.clip(plane, 0, 19)]
+    r = np.arange(na)
+
+    # interior chord points of each arc: nodes between two passes that both belong to the arc block
+    owner = np.zeros(0, np.int64)
+    pts = np.zeros((0, 3))
+    if node_move is not None and passes.num_rows > 1:
+        pb0 = _col(passes, "block_no", np.int64)
+        pb1 = _col(passes, "block_end", np.int64)
+        k = np.arange(1, pb0.size)                       # node k joins pass k−1 and pass k
+        inner = (pb1[k - 1] == pb0[k])
+        cand = k[inner]
+        cand_block = pb0[cand]
+        pos = np.searchsorted(bno, cand_block)
+        posc = np.minimum(pos, na - 1)
+        hit = bno[posc] == cand_block
+        cand, owner = cand[hit], posc[hit]
+        mv = node_move[cand].copy()
+        size = np.linalg.norm(mv, axis=1)
+        big = size > max_move
+        mv[big] *= (max_move / size[big])[:, None]
+        pts = node_xyz[cand] + frame + mv / 1000.0
+
+    a0, a1, an = axes[:, 0], axes[:, 1], axes[:, 2]
+    sa, sb = new_start[r, a0], new_start[r, a1]
+    ba, bb = new_end[r, a0] - sa, new_end[r, a1] - sb
+    chord = np.hypot(ba, bb)
+    full = chord < 1e-9
+    # fallback centre: the old centre carried by the mean in-plane move of the end points
+    shift = (new_start - old_start + new_end - old_end) / 2
+    fa = old_centre[r, a0] + shift[r, a0] - sa
+    fb = old_centre[r, a1] + shift[r, a1] - sb
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ua, ub = -bb / chord, ba / chord
+    t0 = (fa - ba / 2) * ua + (fb - bb / 2) * ub
+    # chord points relative to the new start, in the plane
+    pa_ = pts[np.arange(owner.size), a0[owner]] - sa[owner] if owner.size else np.zeros(0)
+    pb_ = pts[np.arange(owner.size), a1[owner]] - sb[owner] if owner.size else np.zeros(0)
+    sq = pa_ ** 2 + pb_ ** 2
+    g = 2 * (ua[owner] * pa_ + ub[owner] * pb_)
+    r0 = sq - (ba[owner] * pa_ + bb[owner] * pb_)
+    sgg = np.bincount(owner, g * g, na)
+    sgr = np.bincount(owner, np.nan_to_num(g * r0), na)
+    use_fit = ~full & (sgg > 1e-18 * np.maximum(chord, 1e-9) ** 2)
+    t = np.where(use_fit, sgr / np.where(use_fit, sgg, 1.0), t0)
+    ca = np.where(full, fa, ba / 2 + t * np.nan_to_num(ua))
+    cb = np.where(full, fb, bb / 2 + t * np.nan_to_num(ub))
+    if full.any():
+        # full circles: free centre c, |p|² − 2 c·p = 0 in least squares (2×2 normal equations)
+        sxx = np.bincount(owner, pa_ * pa_, na)
+        sxy = np.bincount(owner, pa_ * pb_, na)
+        syy = np.bincount(owner, pb_ * pb_, na)
+        rx = np.bincount(owner, pa_ * sq, na) / 2
+        ry = np.bincount(owner, pb_ * sq, na) / 2
+        det = sxx * syy - sxy ** 2
+        ok = full & (det > 1e-12 * np.maximum(sxx + syy, 1e-30) ** 2)
+        ca = np.where(ok, (syy * rx - sxy * ry) / np.where(ok, det, 1.0), ca)
+        cb = np.where(ok, (sxx * ry - sxy * rx) / np.where(ok, det, 1.0), cb)
+    out = np.empty((na, 3))
+    out[r, a0] = sa + ca
+    out[r, a1] = sb + cb
+    out[r, an] = new_start[r, an]          # the parser's convention: centre at the start's height
+    return out
+
+
+def apply_corrected(blocks: pa.Table, corrected: pa.Table) -> pa.Table:
+    """The ``blocks`` table with the new coordinates and arc centres of ``corrected``.
+
+    Start points follow the new end points of the preceding motion block; dwell rows keep their
+    place (at the new position of the move before them).
+    """
+    nb = blocks.num_rows
+    if nb == 0 or corrected.num_rows == 0:
+        return blocks
+    bno = _col(blocks, "block_no", np.int64)
+    cbn = _col(corrected, "block_no", np.int64)
+    pos = np.searchsorted(cbn, bno)
+    posc = np.minimum(pos, cbn.size - 1)
+    hit = cbn[posc] == bno
+    end = _xyz(blocks, ("x1_mm", "y1_mm", "z1_mm"))
+    new = _xyz(corrected, ("x_new_mm", "y_new_mm", "z_new_mm"))
+    end[hit] = new[posc[hit]]
+    # rows without a corrected row (dwells) stay at the position reached before them
+    last = np.maximum.accumulate(np.where(hit, np.arange(nb), -1))
+    has_last = last >= 0
+    end[~hit & has_last] = end[last[~hit & has_last]]
+    start = np.vstack([end[:1], end[:-1]])
+    start[0] = end[0]
+    cen = _xyz(blocks, ("cx_mm", "cy_mm", "cz_mm"))
+    ncen = np.stack([corrected.column(c).to_numpy(zero_copy_only=False).astype(float)
+                     for c in ("cx_new_mm", "cy_new_mm", "cz_new_mm")], 1)
+    motion = _col(blocks, "motion", np.int64)
+    is_arc = (motion == 2) | (motion == 3)
+    take = hit & is_arc
+    cen[take] = ncen[posc[take]]
+    out = blocks
+    for i, (c0, c1, cc) in enumerate(zip(("x0_mm", "y0_mm", "z0_mm"), ("x1_mm", "y1_mm", "z1_mm"),
+                                         ("cx_mm", "cy_mm", "cz_mm"))):
+        out = out.set_column(out.schema.get_field_index(c0), c0, pa.array(start[:, i]))
+        out = out.set_column(out.schema.get_field_index(c1), c1, pa.array(end[:, i]))
+        out = out.set_column(out.schema.get_field_index(cc), out.schema.field(cc),
+                             pa.array(cen[:, i], mask=~is_arc))
+    return out
+
+
+def correct_iteratively(blocks: pa.Table, predict, params: dict, on_round=None) -> pa.Table:
+    """Predict → correct → predict again until the largest change is below ``tol_um``.
+
+    Parameters
+    ----------
+    blocks : the original ``blocks`` table
+    predict : callable(blocks) -> (passes, errors): the whole prediction chain on a (corrected)
+        program; the caller owns it (split, render, forces, deflection, errors)
+    params : dict with ``params["correct"]``
+    on_round : optional callable(round, corrected, passes, errors) for reporting
+
+    Returns
+    -------
+    the last ``corrected`` table (its ``iteration`` column is the number of rounds run).
+    """
+    p = _params(params)
+    corrected = None
+    current = blocks
+    for k in range(int(p["max_iter"])):
+        passes, errors = predict(current)
+        corrected = correct_once(current, passes, errors, params, previous=corrected)
+        if on_round is not None:
+            on_round(k + 1, corrected, passes, errors)
+        current = apply_corrected(blocks, corrected)
+        change = _col(corrected, "change_um")
+        if change.size == 0 or float(change.max()) < float(p["tol_um"]):
+            break
+    return corrected
+
+
+def run(inputs: dict, params: dict) -> dict[str, pa.Table]:
+    """One correction round on the predicted errors (the engine or an outer loop iterates)."""
+    return {"corrected": correct_once(inputs["blocks"], inputs["passes"], inputs["errors"], params)}

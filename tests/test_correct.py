@@ -1,0 +1,440 @@
+"""Corrected NC programs (issue 5): vertex moves, writer, reverse check, closed loop.
+
+The closed loop runs on an independent virtual machine written here (not the pipeline's
+prediction chain): a ball end mill whose tool is pushed away from the material by a compliance ×
+a load that grows with the local penetration of the (actual, deflected) tool into the stock and
+depends on the feed direction, so the error changes when the path moves and iteration is needed.
+The finished surface is the brute-force lower envelope of the (deflected) ball positions on a grid;
+the target is the lower envelope of the same program on an ideal (rigid) machine. Per-pass errors
+for the correction are read off the simulated surface (the grid points each pass generates).
+"""
+from __future__ import annotations
+
+import numpy as np
+import pyarrow as pa
+import pytest
+
+from stages.correct import apply_corrected, correct_iteratively, correct_once, vertex_moves
+from stages.nc_writer import reverse_check, write_comp_table, write_ln_program, write_program
+from stages.parse import ARC_RADIUS_TOL_MM, parse_program
+from stages.split import split_blocks
+
+SAMPLES = ("data_samples/nc/mould_contour_t1.nc", "data_samples/nc/mould_finish_t1.nc")
+SPLIT = {"split": {"chord_tol_mm": 0.001, "max_pass_mm": 5.0, "merge_max_mm": 0.5},
+         "machine": {"rapid_mm_min": 30000.0},
+         "tool": {"type": "ball", "diameter_mm": 10.0, "control_point": "tip"}}
+
+
+def _load(path):
+    data = open(path, "rb").read()
+    blocks, _ = parse_program(data, path, "p")
+    return data, blocks, split_blocks(blocks, SPLIT)
+
+
+def _errors(passes, err, normals):
+    n = np.asarray(normals, float)
+    return pa.table({"program_id": ["p"] * len(err), "pass_id": passes.column("pass_id"),
+                     "err_um": np.asarray(err, float), "nx": n[:, 0], "ny": n[:, 1], "nz": n[:, 2]})
+
+
+# ------------------------------------------------------------------------------------ closed forms
+
+def test_equal_errors_and_normals_move_minus_e_n():
+    rng = np.random.default_rng(1)
+    n = rng.normal(size=(50, 3))
+    n /= np.linalg.norm(n, axis=1)[:, None]
+    e = rng.normal(0, 20, 50)
+    m = vertex_moves(e, n, np.ones(50, bool), e, n, np.ones(50, bool))
+    np.testing.assert_allclose(m, -e[:, None] * n, atol=1e-12)
+    # one side without a prediction: the predicted side alone, also −e·n
+    m1 = vertex_moves(e, n, np.ones(50, bool), np.zeros(50), np.zeros((50, 3)), np.zeros(50, bool))
+    np.testing.assert_allclose(m1, -e[:, None] * n, atol=1e-12)
+    # nothing predicted: no move
+    m0 = vertex_moves(e, n, np.zeros(50, bool), e, n, np.zeros(50, bool))
+    assert np.all(m0 == 0)
+
+
+def test_perpendicular_normals_realise_both_errors():
+    # wall (n = +x) meets floor (n = +z): the move along E'i + E'j that best realises both
+    ni, nj = np.array([[1.0, 0, 0]]), np.array([[0, 0, 1.0]])
+    m = vertex_moves(np.array([12.0]), ni, np.array([True]), np.array([-5.0]), nj, np.array([True]))
+    np.testing.assert_allclose(m[0], [-12.0, 0.0, 5.0], atol=1e-12)
+
+
+def test_oblique_normals_least_squares_magnitude():
+    # normals 60° apart, different errors: the magnitude along d = unit(E'i + E'j) minimises
+    # Σ(m·n_k + e_k)²; compare with a brute-force scan over the magnitude
+    ni = np.array([1.0, 0, 0])
+    nj = np.array([np.cos(np.pi / 3), 0, np.sin(np.pi / 3)])
+    ei, ej = 10.0, 4.0
+    m = vertex_moves(np.array([ei]), ni[None], np.array([True]), np.array([ej]), nj[None], np.array([True]))[0]
+    d = -(ei * ni + ej * nj)
+    d /= np.linalg.norm(d)
+    s = np.linspace(0, 40, 400001)
+    cost = (s * (d @ ni) + ei) ** 2 + (s * (d @ nj) + ej) ** 2
+    np.testing.assert_allclose(m, s[np.argmin(cost)] * d, atol=1e-3)
+    np.testing.assert_allclose(m / np.linalg.norm(m), d, atol=1e-12)
+
+
+# ------------------------------------------------------------------------------------ writer
+
+@pytest.mark.parametrize("path", SAMPLES)
+def test_no_error_gives_byte_identical_program(path):
+    data, blocks, passes = _load(path)
+    n = passes.num_rows
+    zero = _errors(passes, np.zeros(n), np.tile([0, 0, 1.0], (n, 1)))
+    corrected = correct_once(blocks, passes, zero, {"correct": {}})
+    assert np.all(corrected.column("move_um").to_numpy() == 0)
+    assert write_program(data, blocks, corrected) == data
+    # no error rows at all (everything pruned): same
+    none = correct_once(blocks, passes, zero.slice(0, 0), {"correct": {}})
+    assert write_program(data, blocks, none) == data
+
+
+def _random_errors(passes, seed, scale=15.0):
+    rng = np.random.default_rng(seed)
+    n = passes.num_rows
+    nn = rng.normal(size=(n, 3))
+    nn /= np.linalg.norm(nn, axis=1)[:, None]
+    keep = rng.random(n) < 0.8          # some passes pruned
+    err = _errors(passes, rng.normal(0, scale, n), nn)
+    return err.filter(pa.array(keep))
+
+
+def _code_words(line: bytes) -> bytes:
+    import re
+    return re.sub(rb"\([^)]*\)|;.*", b"", line)
+
+
+@pytest.mark.parametrize("path", SAMPLES)
+def test_reverse_check_random_moves(path):
+    data, blocks, passes = _load(path)
+    corrected = correct_once(blocks, passes, _random_errors(passes, 3), {"correct": {"max_move_um": 40.0}})
+    out = write_program(data, blocks, corrected, max_move_um=40.0)
+    rep = reverse_check(out, blocks, corrected)
+    assert rep["ok"], rep["message"]
+    assert rep["max_dev_um"] <= 0.5 + 1e-6            # written on the source's 0.001 mm grid
+    if "max_centre_dev_um" in rep:
+        assert rep["max_centre_dev_um"] < 5.0
+    # the same pass structure after splitting (count and motion kinds)
+    new_blocks, _ = parse_program(out, "x", "p")
+    new_passes = split_blocks(new_blocks, SPLIT)
+    assert np.array_equal(new_blocks.column("motion").to_numpy(), blocks.column("motion").to_numpy())
+    assert abs(new_passes.num_rows - passes.num_rows) <= 0.01 * passes.num_rows
+    # non-motion lines and comments byte for byte; one header line added after the O line
+    src, dst = data.split(b"\n"), out.split(b"\n")
+    assert len(dst) == len(src) + 1 and dst[2].startswith(b"(CORRECTED PROGRAM") and dst[1] == src[1]
+    dst = dst[:2] + dst[3:]
+    motion_lines = set(blocks.column("line_no").to_numpy() - 1)
+    for i, (a, b) in enumerate(zip(src, dst)):
+        if i not in motion_lines:
+            assert a == b
+        else:   # only digits of coordinate words differ: comments, N, G, F identical
+            strip = lambda s: bytes(c for c in s if c not in b"0123456789.-+ XYZIJKR")  # noqa: E731
+            assert strip(a) == strip(b)
+            assert a.count(b"(") == b.count(b"(") and a.split(b"(")[1:] == b.split(b"(")[1:]
+    # deterministic
+    assert write_program(data, blocks, corrected, max_move_um=40.0) == out
+
+
+def test_modal_omission_incremental_and_inch():
+    text = b"\n".join([b"%", b"O0007", b"G90 G21 G17", b"T1 M6", b"S1000 M3", b"G0 X0. Y0. Z5.", b"G1 Z0. F100",
+                       b"X10.000", b"X20.000 (ROW)", b"G91 X5.000 Y1.000", b"X5.000", b"G90 G20 X1.2000",
+                       b"G21 G0 Z50.", b"M30", b"%", b""])
+    blocks, _ = parse_program(text, "t", "p")
+    passes = split_blocks(blocks, SPLIT)
+    n = passes.num_rows
+    # lift every predicted pass by 10 µm along +Y (err −10 with n = +y → move +10 µm in y)
+    err = _errors(passes, np.full(n, -10.0), np.tile([0, 1.0, 0], (n, 1)))
+    motion = passes.column("motion").to_numpy()
+    err = err.filter(pa.array(motion != 0))
+    corrected = correct_once(blocks, passes, err, {"correct": {}})
+    out = write_program(text, blocks, corrected)
+    lines = out.split(b"\n")
+    assert lines[2].startswith(b"(CORRECTED")
+    # the first vertex already carries the +10 µm in Y (the plunge after it is predicted): later
+    # blocks keep Y modal; increments are unchanged (both ends moved alike); the inch block gets Y on
+    # its 4-decimal inch grid; the final rapid's end has no predicted pass and goes back to Y1.000
+    assert lines[3:] == [b"G90 G21 G17", b"T1 M6", b"S1000 M3", b"G0 X0. Y0.010 Z5.", b"G1 Z0. F100",
+                         b"X10.000", b"X20.000 (ROW)", b"G91 X5.000 Y1.000", b"X5.000",
+                         b"G90 G20 X1.2000 Y0.0398", b"G21 G0 Y1.000 Z50.", b"M30", b"%", b""]
+    rep = reverse_check(out, blocks, corrected)
+    assert rep["ok"], rep
+
+
+def test_clipping_limits_and_flags():
+    data, blocks, passes = _load(SAMPLES[0])
+    n = passes.num_rows
+    err = _errors(passes, np.full(n, 80.0), np.tile([0, 0, 1.0], (n, 1)))
+    c = correct_once(blocks, passes, err, {"correct": {"max_move_um": 30.0}})
+    move = c.column("move_um").to_numpy()
+    clipped = c.column("clipped").to_numpy()
+    assert move.max() <= 30.0 + 1e-9
+    assert clipped.any() and np.allclose(move[clipped], 30.0)
+    dz = (c.column("z_new_mm").to_numpy() - c.column("z_mm").to_numpy()) * 1000
+    np.testing.assert_allclose(dz[clipped], -30.0, atol=1e-9)       # along −n, shortened
+    # accumulating a second round keeps the total clipped
+    c2 = correct_once(apply_corrected(blocks, c), passes, err, {"correct": {"max_move_um": 30.0}}, previous=c)
+    assert c2.column("move_um").to_numpy().max() <= 30.0 + 1e-9
+    assert c2.column("iteration").to_numpy()[0] == 2
+
+
+def test_arc_refit_stays_a_circle():
+    # a G17 arc and an R arc, radial errors on their chords: a uniform radial error must grow the
+    # radius by that error (concentric), and the written arcs must pass the parser's radius check
+    text = b"\n".join([b"%", b"O0008", b"G90 G21 G17", b"T1 M6", b"S1000 M3", b"G0 X10.000 Y0.000 Z0.000",
+                       b"G1 X10.000 Y0.000 F500", b"G3 X0.000 Y10.000 I-10.000 J0.000",
+                       b"G3 X-10.000 Y0.000 R10.000", b"G1 X-10.000 Y-5.000", b"M30", b"%", b""])
+    blocks, _ = parse_program(text, "t", "p")
+    passes = split_blocks(blocks, SPLIT)
+    mid = (np.stack([passes.column(c).to_numpy() for c in ("x0_mm", "y0_mm")], 1)
+           + np.stack([passes.column(c).to_numpy() for c in ("x1_mm", "y1_mm")], 1)) / 2
+    radial = mid / np.linalg.norm(mid, axis=1)[:, None]
+    nrm = np.column_stack([-radial, np.zeros(len(mid))])   # inside of a ring: material outside
+    motion = passes.column("motion").to_numpy()
+    arcs = (motion == 2) | (motion == 3)
+    err = _errors(passes, np.full(len(mid), -20.0), nrm).filter(pa.array(arcs))   # 20 µm overcut
+    c = correct_once(blocks, passes, err, {"correct": {}})
+    cx, cy = c.column("cx_new_mm").to_numpy(), c.column("cy_new_mm").to_numpy()
+    x, y = c.column("x_new_mm").to_numpy(), c.column("y_new_mm").to_numpy()
+    mo = c.column("motion").to_numpy()
+    i = np.flatnonzero(mo == 3)
+    # overcut on the inside of a ring → the path moves toward the centre by 20 µm: radius 9.980
+    for k in i:
+        np.testing.assert_allclose(np.hypot(x[k] - cx[k], y[k] - cy[k]), 9.980, atol=2e-5)
+        np.testing.assert_allclose(np.hypot(x[k - 1] - cx[k], y[k - 1] - cy[k]), 9.980, atol=2e-5)
+        np.testing.assert_allclose([cx[k], cy[k]], [0, 0], atol=2e-5)
+    out = write_program(text, blocks, c)
+    rep = reverse_check(out, blocks, c)
+    assert rep["ok"], rep
+    nb, _ = parse_program(out, "t", "p")        # the parser's radius check passes
+    m = nb.column("motion").to_numpy()
+    for k in np.flatnonzero(m == 3):
+        r0 = np.hypot(nb.column("x0_mm")[k].as_py() - nb.column("cx_mm")[k].as_py(),
+                      nb.column("y0_mm")[k].as_py() - nb.column("cy_mm")[k].as_py())
+        r1 = np.hypot(nb.column("x1_mm")[k].as_py() - nb.column("cx_mm")[k].as_py(),
+                      nb.column("y1_mm")[k].as_py() - nb.column("cy_mm")[k].as_py())
+        assert abs(r0 - r1) < ARC_RADIUS_TOL_MM / 5
+        assert abs(r0 - 9.98) < 2e-3
+    assert b"R9.980" in out and b"I-9.980 J0.000" in out
+
+
+def test_random_arc_moves_stay_consistent():
+    data, blocks, passes = _load(SAMPLES[0])
+    for seed in range(3):
+        c = correct_once(blocks, passes, _random_errors(passes, 10 + seed, 30.0), {"correct": {}})
+        out = write_program(data, blocks, c)
+        nb, _ = parse_program(out, "x", "p")            # raises if any arc radius is inconsistent
+        m = nb.column("motion").to_numpy()
+        arc = (m == 2) | (m == 3)
+        g = lambda c_: nb.column(c_).to_numpy(zero_copy_only=False)[arc].astype(float)  # noqa: E731
+        pl = nb.column("plane").to_numpy()[arc]
+        ax = {17: (0, 1), 18: (2, 0), 19: (1, 2)}
+        s = np.stack([g("x0_mm"), g("y0_mm"), g("z0_mm")], 1)
+        e = np.stack([g("x1_mm"), g("y1_mm"), g("z1_mm")], 1)
+        cc = np.stack([g("cx_mm"), g("cy_mm"), g("cz_mm")], 1)
+        for k in range(s.shape[0]):
+            a, b = ax[int(pl[k])]
+            r0 = np.hypot(s[k, a] - cc[k, a], s[k, b] - cc[k, b])
+            r1 = np.hypot(e[k, a] - cc[k, a], e[k, b] - cc[k, b])
+            assert abs(r0 - r1) < ARC_RADIUS_TOL_MM / 2
+
+
+def test_ln_and_comp_table():
+    data, blocks, passes = _load(SAMPLES[1])
+    err = _random_errors(passes, 5)
+    q = np.random.default_rng(0).uniform(0, 90, err.num_rows)
+    err = err.append_column("contact_deg", pa.array(q))
+    c = correct_once(blocks, passes, err, {"correct": {}})
+    ln = write_ln_program(c, "MOULD")
+    lines = ln.splitlines()
+    assert lines[0] == "0 BEGIN PGM MOULD MM" and lines[-1].endswith("END PGM MOULD MM")
+    lnb = [s for s in lines if " LN " in s]
+    assert len(lnb) > 0.5 * c.num_rows
+    v = np.array([[float(w[2:]) for w in s.split() if w[:2] in ("NX", "NY", "NZ")] for s in lnb[:200]])
+    np.testing.assert_allclose(np.linalg.norm(v, axis=1), 1.0, atol=1e-6)
+    tab = write_comp_table(pa.table({"contact_deg": [45.0, 45.2, 60.0], "err_um": [2.0, 4.0, -1.0]}))
+    rows = {float(r.split(",")[0]): float(r.split(",")[1]) for r in tab.splitlines()[3:]}
+    assert rows[45.0] == pytest.approx(-0.003)      # 3 µm left at 45° → tool 3 µm smaller there
+    assert rows[60.0] == pytest.approx(0.001)
+    assert rows[50.0] == pytest.approx(-0.003 + (0.004) * 5 / 15, abs=1e-5)
+    assert rows[0.0] == pytest.approx(-0.003) and rows[90.0] == pytest.approx(0.001)
+
+
+# ------------------------------------------------------------------------------------ virtual machine
+
+class VirtualMachine:
+    """Independent brute-force simulation of ball-end finishing with a compliant machine.
+
+    ``centre_surface(x, y) -> (F, dF/dx, dF/dy)``: the nominal ball-centre surface the program was
+    made for (an offset of the part). The load at a tool position is proportional to its penetration
+    into the stock, ``allow + (F(x, y) − z_c)·n_z`` along the normal of F (so a path moved into the
+    part cuts deeper and deflects more), the tool is pushed out of the material horizontally by
+    ``gain·load`` along the horizontal normal (stiffness differing in x and y) plus ``side·load``
+    to the left of the feed direction (up/down milling), solved for the deflected position.
+    """
+
+    def __init__(self, centre_surface, radius, allow_um, gain_xy=(0.5, 0.35), side=0.08, step=0.1):
+        self.F, self.R, self.allow = centre_surface, radius, allow_um / 1000.0
+        self.gain, self.side, self.step = np.array(gain_xy), side, step
+
+    def samples(self, passes, deflect=True):
+        """Ball centres along the cutting passes (mm) and the pass index of each."""
+        g = lambda c: passes.column(c).to_numpy().astype(float)  # noqa: E731
+        p0 = np.stack([g("x0_mm"), g("y0_mm"), g("z0_mm")], 1)
+        p1 = np.stack([g("x1_mm"), g("y1_mm"), g("z1_mm")], 1)
+        cut = passes.column("motion").to_numpy() != 0
+        idx = np.flatnonzero(cut)
+        length = np.linalg.norm(p1[idx] - p0[idx], axis=1)
+        k = np.maximum(1, np.ceil(length / self.step)).astype(int) + 1
+        owner = np.repeat(idx, k)
+        first = np.concatenate(([0], np.cumsum(k)[:-1]))
+        t = (np.arange(owner.size) - np.repeat(first, k)) / np.repeat(k - 1, k)
+        c = p0[owner] + (p1[owner] - p0[owner]) * t[:, None]
+        c[:, 2] += self.R
+        if deflect:
+            feed = (p1 - p0)[owner]
+            feed /= np.maximum(np.linalg.norm(feed, axis=1), 1e-12)[:, None]
+            c = c + self.deflection(c, feed)
+        return c, owner
+
+    def deflection(self, c, feed):
+        d = np.zeros_like(c)
+        for _ in range(6):                      # the load is that of the deflected position
+            f, fx, fy = self.F(c[:, 0] + d[:, 0], c[:, 1] + d[:, 1])
+            nz = 1 / np.sqrt(1 + fx ** 2 + fy ** 2)
+            nx, ny = -fx * nz, -fy * nz
+            load = np.maximum(self.allow + (f - c[:, 2]) * nz, 0.0)
+            d = np.zeros_like(c)
+            d[:, 0] = load * (self.gain[0] * nx - self.side * feed[:, 1])
+            d[:, 1] = load * (self.gain[1] * ny + self.side * feed[:, 0])
+        return d
+
+    def surface(self, passes, xs, ys, deflect=True):
+        """Lower envelope of the balls on the grid: height, generating pass, generating centre."""
+        c, owner = self.samples(passes, deflect)
+        sel = (c[:, 0] > xs[0] - self.R) & (c[:, 0] < xs[-1] + self.R) & (c[:, 1] > ys[0] - self.R) & (c[:, 1] < ys[-1] + self.R)
+        c, owner = c[sel], owner[sel]
+        o = np.argsort(c[:, 1], kind="stable")
+        c, owner = c[o], owner[o]
+        z = np.full((ys.size, xs.size), np.inf)
+        gen = np.full((ys.size, xs.size), -1)
+        cen = np.zeros((ys.size, xs.size, 3))
+        for j, y in enumerate(ys):
+            lo, hi = np.searchsorted(c[:, 1], [y - self.R, y + self.R])
+            w = c[lo:hi]
+            rho2 = self.R ** 2 - (w[:, 1] - y) ** 2
+            dx2 = (xs[:, None] - w[None, :, 0]) ** 2
+            h = np.where(dx2 < rho2, w[None, :, 2] - np.sqrt(np.maximum(rho2 - dx2, 0)), np.inf)
+            a = np.argmin(h, axis=1)
+            z[j] = h[np.arange(xs.size), a]
+            gen[j] = owner[lo:hi][a]
+            cen[j] = w[a]
+        return z, gen, cen
+
+
+def _closed_loop(text, vm, xs, ys, params, max_iter=4):
+    """Correct ``text`` on the virtual machine; RMS machining error before and after, per round."""
+    blocks0, _ = parse_program(text, "vm", "p")
+    passes0 = split_blocks(blocks0, SPLIT)
+    target, gen0, cen0 = vm.surface(passes0, xs, ys, deflect=False)
+    gx, gy = np.meshgrid(xs, ys)
+    normal = cen0 - np.stack([gx, gy, target], -1)           # from the contact to the ball centre
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+
+    def machined_error(passes):
+        z, gen, _ = vm.surface(passes, xs, ys, deflect=True)
+        return (z - target) * normal[..., 2] * 1000.0, gen    # µm along the normal, + = left
+
+    def predict(blocks):
+        passes = split_blocks(blocks, SPLIT)
+        err, gen = machined_error(passes)
+        rms.append(float(np.sqrt(np.mean(err ** 2))))
+        ids = gen.ravel()
+        n = passes.num_rows
+        cnt = np.bincount(ids, minlength=n)
+        e = np.bincount(ids, err.ravel(), n) / np.maximum(cnt, 1)
+        nn = np.stack([np.bincount(ids, normal[..., i].ravel(), n) for i in range(3)], 1)
+        have = cnt >= 3
+        nn[have] /= np.linalg.norm(nn[have], axis=1)[:, None]
+        tab = _errors(passes, e, nn).filter(pa.array(have))
+        return passes, tab
+
+    rms = []                          # machining error of the path each round predicted on
+    corrected = correct_iteratively(blocks0, predict, {"correct": dict(params, max_iter=max_iter)})
+    out = write_program(text, blocks0, corrected)
+    assert reverse_check(out, blocks0, corrected)["ok"]
+    written, _ = parse_program(out, "vm-corrected", "p")
+    final = float(np.sqrt(np.mean(machined_error(split_blocks(written, SPLIT))[0] ** 2)))
+    return rms, final, corrected
+
+
+def _program(rows):
+    """Fanuc-style text from rows of (x, y, z) tip points per pass line, zigzag joined by G1 links."""
+    lines = ["%", "O2001 (VIRTUAL MACHINE CASE)", "G90 G17 G21", "T1 M6", "S10000 M3"]
+    n = 10
+    x, y, z = rows[0][0]
+    lines += [f"N{n} G0 X{x:.3f} Y{y:.3f}", f"N{n + 10} Z{z + 5:.3f}", f"N{n + 20} G1 Z{z:.3f} F2000"]
+    n += 30
+    for r in rows:
+        for x, y, z in r:
+            lines.append(f"N{n} X{x:.3f} Y{y:.3f} Z{z:.3f}")
+            n += 10
+    lines += [f"N{n} G0 Z50.000", f"N{n + 10} M30", "%", ""]
+    return "\n".join(lines).encode()
+
+
+def test_closed_loop_cylinder_contour():
+    """Seed 000 Fig. 16/20 style: z-level passes along a cylinder (axis along Y), q from 0 to 60°."""
+    rc, R = 12.0, 3.0
+    pitch = 0.4
+    qs = np.arange(-8, 68, np.degrees(pitch / rc)) * np.pi / 180
+
+    def centre_surface(x, y):
+        rr = rc + R
+        xx = np.clip(x, -rr + 1e-6, rr - 1e-6)
+        f = np.sqrt(rr ** 2 - xx ** 2)
+        return f, -xx / f, np.zeros_like(f)
+
+    ys = np.arange(-3.0, 3.01, 0.25)
+    rows = []
+    for k, q in enumerate(qs):
+        yy = np.linspace(-7.0, 7.0, 15) * (1 if k % 2 == 0 else -1)
+        cx, cz = (rc + R) * np.sin(q), (rc + R) * np.cos(q) - R
+        rows.append([(cx, y, cz) for y in yy])
+    text = _program(rows)
+    vm = VirtualMachine(centre_surface, R, allow_um=60.0)
+    xs = np.arange(0.0, rc * np.sin(np.radians(60)), 0.05)
+    rms, final, corrected = _closed_loop(text, vm, xs, ys, {"max_move_um": 100.0, "tol_um": 0.2})
+    print(f"\ncylinder contour: RMS error {rms[0]:.2f} µm before, rounds {['%.2f' % r for r in rms[1:]]},"
+          f" written program {final:.2f} µm = {100 * final / rms[0]:.1f} % of before")
+    assert rms[0] > 5.0
+    assert final <= 0.2 * rms[0]
+    assert corrected.column("iteration").to_numpy()[0] >= 2
+
+
+def test_closed_loop_freeform_raster():
+    """Zigzag raster along X over a free-form surface (bump on a saddle)."""
+    R = 3.0
+
+    def centre_surface(x, y):
+        b = np.exp(-((x - 5) ** 2 + (y - 4) ** 2) / 12.0)
+        f = 2.0 * b + 0.04 * (x - 5) * (y - 4) + 0.1 * x
+        fx = 2.0 * b * (-(x - 5) / 6.0) + 0.04 * (y - 4) + 0.1
+        fy = 2.0 * b * (-(y - 4) / 6.0) + 0.04 * (x - 5)
+        return f, fx, fy
+
+    xs = np.arange(0.0, 10.0, 0.1)
+    ys = np.arange(0.0, 8.0, 0.1)
+    rows = []
+    for k, y in enumerate(np.arange(-3.5, 11.6, 0.5)):
+        xx = np.arange(-3.5, 13.6, 0.5)[:: 1 if k % 2 == 0 else -1]
+        f, _, _ = centre_surface(xx, np.full_like(xx, y))
+        rows.append(list(zip(xx, np.full_like(xx, y), f - R)))
+    text = _program(rows)
+    vm = VirtualMachine(centre_surface, R, allow_um=60.0)
+    rms, final, corrected = _closed_loop(text, vm, xs, ys, {"max_move_um": 100.0, "tol_um": 0.2})
+    print(f"\nfree-form raster: RMS error {rms[0]:.2f} µm before, rounds {['%.2f' % r for r in rms[1:]]},"
+          f" written program {final:.2f} µm = {100 * final / rms[0]:.1f} % of before")
+    assert rms[0] > 3.0
+    assert final <= 0.2 * rms[0]
