@@ -19,63 +19,17 @@ contact-angle compensation table (radius deviation per angle, like a 3D-ToolComp
 from __future__ import annotations
 
 import hashlib
-import re
 
 import numpy as np
 import pyarrow as pa
 
-from stages.parse import INCH_MM, parse_program
+from stages.parse import (_BLANK, _CLASS, _CLOSE, _LETTER, _NL, _NUM, _OPEN, _SEMI, _UPPER, INCH_MM, _Errors,
+                          _numbers, parse_program)
 
-_WORD = re.compile(rb"\([^)]*\)|;[^\r\n]*|([A-Za-z])[ \t]*([+-]?[0-9]*\.?[0-9]*)")
 _AXES = "XYZ"
 _ARC = "IJK"
 _ORDER = "NGXYZIJKR"          # where an added word goes: after the last word of an earlier letter
 _PLANE_AXES = {17: (0, 1), 18: (2, 0), 19: (1, 2)}   # in-plane axes (first, second) as the parser
-_OFFSET_LETTER = {0: "I", 1: "J", 2: "K"}
-
-
-class _Word:
-    __slots__ = ("letter", "value", "start", "end", "decimals", "dot", "plus", "lead0")
-
-    def __init__(self, letter, text, start, end):
-        self.letter = letter
-        self.start, self.end = start, end
-        t = text.decode("ascii")
-        self.plus = t.startswith("+")
-        body = t.lstrip("+-")
-        self.dot = "." in body
-        self.decimals = len(body.split(".", 1)[1]) if self.dot else 0
-        self.lead0 = not body.startswith(".")
-        self.value = float(t) if body.strip(".") else 0.0
-
-
-def _words(line: bytes) -> dict:
-    """Words of one block outside comments: (letter → _Word, [(letter, word start, word end)])."""
-    out = {}
-    order = []
-    for m in _WORD.finditer(line):
-        if m.group(1) is None:
-            continue
-        letter = m.group(1).decode().upper()
-        w = _Word(letter, m.group(2), m.start(2), m.end(2))
-        out[letter] = w
-        order.append((letter, m.start(1), m.end(2)))
-    return out, order
-
-
-def _fmt(value: float, decimals: int, style: _Word | None) -> str:
-    """``value`` with ``decimals`` decimals in the style of the word it replaces."""
-    s = f"{value + 0.0:.{decimals}f}" if decimals > 0 else f"{int(round(value))}."
-    if s.startswith("-") and float(s) == 0:
-        s = s[1:]
-    if style is not None:
-        if not style.lead0:
-            s = s.replace("0.", ".", 1) if s.lstrip("-").startswith("0.") else s
-        if style.plus and not s.startswith("-"):
-            s = "+" + s
-        if not style.dot and decimals == 0:
-            s = s.rstrip(".")
-    return s
 
 
 def _table_np(table: pa.Table, name: str, dtype=float):
@@ -116,16 +70,39 @@ def write_program(data: bytes, blocks: pa.Table, corrected: pa.Table, *, source_
     centre = np.stack([_table_np(corrected, c) for c in ("cx_new_mm", "cy_new_mm", "cz_new_mm")], 1)
     n = cbn.size
 
-    parsed = [_words(lines[i]) for i in line_idx]
-    words = [p[0] for p in parsed]
-    # default decimals per letter (for added words and integer-style words): the most common
+    sc = _scan(data)
+    # words of the motion lines: row of each word (−1: not a motion line)
+    line_row = np.full(len(lines) + 1, -1, np.int64)
+    line_row[line_idx] = np.arange(n)
+    w_row = line_row[sc["line"]]
+    on_row = w_row >= 0
+    wl = {k: v[on_row] for k, v in sc.items() if k != "line_start"}
+    w_row = w_row[on_row]
+    letter = wl["letter"]
+    # default decimals per letter (added words, integer-style words): the most common in the program
     default = {}
-    for letter in _AXES + _ARC + "R":
-        decs = [w[letter].decimals for w in words if letter in w and w[letter].dot and w[letter].decimals]
-        default[letter] = (max(set(decs), key=decs.count) if decs else 3)
-    present = np.array([[a in w for a in _AXES] for w in words], bool).reshape(n, 3)
-    dec = np.array([[(w[a].decimals if a in w and w[a].decimals else default[a]) for a in _AXES] for w in words],
-                   np.int64).reshape(n, 3)
+    for ch in _AXES + _ARC + "R":
+        d = wl["decimals"][(letter == ord(ch)) & wl["dot"] & (wl["decimals"] > 0)]
+        default[ch] = int(np.bincount(d).argmax()) if d.size else 3
+
+    def by_letter(chars):
+        """(n, len(chars)) arrays: present, value, decimals, word index."""
+        m = len(chars)
+        present = np.zeros((n, m), bool)
+        value = np.full((n, m), np.nan)
+        decs = np.zeros((n, m), np.int64)
+        widx = np.full((n, m), -1, np.int64)
+        for j, ch in enumerate(chars):
+            sel = np.flatnonzero(letter == ord(ch))
+            r = w_row[sel]
+            present[r, j] = True
+            value[r, j] = wl["value"][sel]
+            decs[r, j] = np.maximum(wl["decimals"][sel], default[ch])
+            widx[r, j] = sel
+            decs[~present[:, j], j] = default[ch]
+        return present, value, decs, widx
+
+    present, orig_val, dec, widx = by_letter(_AXES)
     dec = np.where(inch[:, None] & ~present, np.maximum(dec, 4), dec)
     unit = 10.0 ** -dec                                      # resolution in the block's units
     # position the control holds after each block, on the written grid (mm)
@@ -133,7 +110,6 @@ def write_program(data: bytes, blocks: pa.Table, corrected: pa.Table, *, source_
     held = k * unit * scale[:, None]
     prev_held = np.vstack([held[:1], held[:-1]])
     defined = np.maximum.accumulate(present, axis=0)         # the program has set this axis
-    orig_val = np.array([[(w[a].value if a in w else np.nan) for a in _AXES] for w in words]).reshape(n, 3)
     # value each word should carry
     inc_val = np.rint((held - prev_held) / scale[:, None] / unit) * unit
     want = np.where(incr[:, None], inc_val, k * unit)
@@ -141,52 +117,89 @@ def write_program(data: bytes, blocks: pa.Table, corrected: pa.Table, *, source_
     change = present & (np.abs(want - orig_val) > tol)
     moved_from_held = np.abs(held - prev_held) > 1e-9 * np.maximum(1.0, np.abs(held))
     first = np.arange(n) == 0
+    # an axis the program has not set yet stays unset; the first block has nothing to differ from
     add = ~present & defined & ~first[:, None] & np.where(incr[:, None], np.abs(inc_val) > tol, moved_from_held)
-    # an axis the program has not set yet stays unset; the control still holds the old value there
-    edits = {}
-    for r, a in zip(*np.nonzero(change | add)):
-        edits.setdefault(int(r), {})[_AXES[a]] = _fmt(want[r, a], int(dec[r, a]), words[r].get(_AXES[a]))
+    e_row, e_col = np.nonzero(change | add)
+    e_val = want[e_row, e_col]
+    e_dec = dec[e_row, e_col]
+    e_letter = np.array([ord(c) for c in _AXES])[e_col]
 
-    # arc words: centre relative to the written start, or R
-    arc = (motion == 2) | (motion == 3)
-    for r in np.flatnonzero(arc):
-        if r == 0:
-            continue
-        w = words[r]
-        s, e, c = prev_held[r], held[r], centre[r]
-        if np.isnan(c).any():
-            continue
-        a0, a1 = _PLANE_AXES.get(int(plane[r]), (0, 1))
-        if "R" in w:
-            rad = (np.hypot(*(s - c)[[a0, a1]]) + np.hypot(*(e - c)[[a0, a1]])) / 2
-            v0, v1 = (s - c)[[a0, a1]], (e - c)[[a0, a1]]
-            sweep = np.arctan2(v0[0] * v1[1] - v0[1] * v1[0], v0 @ v1)
-            sweep = np.mod(sweep, 2 * np.pi) if motion[r] == 3 else np.mod(-sweep, 2 * np.pi)
-            d_r = w["R"].decimals or default["R"]
-            u = 10.0 ** -d_r
-            rr = np.rint(rad / scale[r] / u) * u
-            half = np.hypot(*(e - s)[[a0, a1]]) / 2 / scale[r]
-            while rr < half:                                  # rounding must not make R too short
-                rr += u
-            val = -rr if sweep > np.pi + 1e-12 else rr
-            if abs(val - w["R"].value) > 0.5 * u:
-                edits.setdefault(int(r), {})["R"] = _fmt(val, d_r, w["R"])
-            continue
-        for ax in (a0, a1):
-            letter = _OFFSET_LETTER[ax]
-            d_o = (w[letter].decimals if letter in w and w[letter].decimals else default[letter])
+    e_word = widx[e_row, e_col]
+
+    # arc words: centre relative to the written start (I J K), or R
+    ar = np.flatnonzero(((motion == 2) | (motion == 3)) & (np.arange(n) > 0) & ~np.isnan(centre).any(1))
+    a_present, a_val, a_dec, a_widx = by_letter(_ARC + "R")
+    if ar.size:
+        lut = np.zeros((20, 2), np.int64)
+        for pl, ax in _PLANE_AXES.items():
+            lut[pl] = ax
+        ax2 = lut[np.clip(plane[ar], 0, 19)]
+        s, e, c = prev_held[ar], held[ar], centre[ar]
+        rr_ = np.arange(ar.size)
+        sc_ = scale[ar]
+        x_rows, x_cols, x_vals, x_decs = [], [], [], []
+        # R form: radius through the written end points, negative beyond 180°
+        has_r = a_present[ar, 3]
+        v0 = np.stack([s[rr_, ax2[:, 0]] - c[rr_, ax2[:, 0]], s[rr_, ax2[:, 1]] - c[rr_, ax2[:, 1]]], 1)
+        v1 = np.stack([e[rr_, ax2[:, 0]] - c[rr_, ax2[:, 0]], e[rr_, ax2[:, 1]] - c[rr_, ax2[:, 1]]], 1)
+        rad = (np.linalg.norm(v0, axis=1) + np.linalg.norm(v1, axis=1)) / 2
+        sweep = np.arctan2(v0[:, 0] * v1[:, 1] - v0[:, 1] * v1[:, 0], np.einsum("ij,ij->i", v0, v1))
+        sweep = np.where(motion[ar] == 3, np.mod(sweep, 2 * np.pi), np.mod(-sweep, 2 * np.pi))
+        u = 10.0 ** -a_dec[ar, 3]
+        rad_w = np.rint(rad / sc_ / u) * u
+        half = np.linalg.norm(v1 - v0, axis=1) / 2 / sc_
+        rad_w = np.where(rad_w < half, np.ceil(half / u) * u, rad_w)   # rounding must not make R too short
+        val = np.where(sweep > np.pi + 1e-12, -rad_w, rad_w)
+        ch = has_r & (np.abs(val - a_val[ar, 3]) > 0.5 * u)
+        x_rows.append(ar[ch]), x_cols.append(np.full(ch.sum(), 3)), x_vals.append(val[ch]), x_decs.append(a_dec[ar, 3][ch])
+        # I J K: centre − written start on the plane's two axes (absent word = 0)
+        for j in (0, 1):
+            ax = ax2[:, j]
+            d_o = a_dec[ar, ax]
             u = 10.0 ** -d_o
-            val = np.rint((c[ax] - s[ax]) / scale[r] / u) * u
-            old = w[letter].value if letter in w else 0.0
-            if abs(val - old) > 0.5 * u:
-                edits.setdefault(int(r), {})[letter] = _fmt(val, d_o, w.get(letter))
-
-    if not edits:
+            val = np.rint((c[rr_, ax] - s[rr_, ax]) / sc_ / u) * u
+            old = np.where(a_present[ar, ax], a_val[ar, ax], 0.0)
+            ch = ~has_r & (np.abs(val - old) > 0.5 * u)
+            x_rows.append(ar[ch]), x_cols.append(ax[ch]), x_vals.append(val[ch]), x_decs.append(d_o[ch])
+        xr, xc = np.concatenate(x_rows), np.concatenate(x_cols)
+        e_row = np.concatenate([e_row, xr])
+        e_val = np.concatenate([e_val, np.concatenate(x_vals)])
+        e_dec = np.concatenate([e_dec, np.concatenate(x_decs)])
+        e_letter = np.concatenate([e_letter, np.frombuffer(b"IJKR", np.uint8)[xc]])
+        e_word = np.concatenate([e_word, a_widx[xr, xc]])
+    if e_row.size == 0:
         return data
-    out = list(lines)
-    for r, ed in edits.items():
-        out[line_idx[r]] = _edit_line(lines[line_idx[r]], parsed[r], ed)
-    moved = len(edits)
+
+    # replacements of present words (value span), insertions of absent ones (letter + value)
+    m = e_row.size
+    rep = e_word >= 0
+    wsafe = np.maximum(e_word, 0)
+    start = np.where(rep, wl["vstart"][wsafe], 0)
+    end = np.where(rep, wl["vend"][wsafe], 0)
+    lead = np.zeros(m, bool)
+    sep = np.zeros(m, bool)
+    rank_of = np.full(256, 0, np.int64)
+    for i, chr_ in enumerate(_ORDER):
+        rank_of[ord(chr_)] = i
+    rank = np.where(rep, 0, rank_of[e_letter])
+    ins = np.flatnonzero(~rep)
+    if ins.size:
+        pos, ld, sp = _insert_positions(wl, w_row, n, e_row[ins], e_letter[ins])
+        start[ins] = end[ins] = pos
+        lead[ins], sep[ins] = ld, sp
+    plus = rep & wl["plus"][wsafe]
+    lead0 = ~rep | wl["lead0"][wsafe]
+    body = _format(e_val, e_dec, plus, lead0)
+    # prefix (separator, letter) and suffix (separator) of inserted words
+    pre = np.zeros((m, 2), np.uint8)
+    pre[:, 0] = np.where(~rep & lead & sep, 32, 0)
+    pre[:, 1] = np.where(~rep, e_letter, 0)
+    suf = np.where(~rep & ~lead & sep, 32, 0).astype(np.uint8)[:, None]
+    body = np.hstack([pre, body, suf])
+    order = np.lexsort((rank, start))
+    out = _splice(data, start[order], end[order], body[order])
+
+    moved = int(np.count_nonzero(np.bincount(e_row, minlength=n)))
     move_um = _table_np(corrected, "move_um")
     clipped = int(_table_np(corrected, "clipped", bool).sum())
     rounds = int(_table_np(corrected, "iteration", np.int64).max())
@@ -194,13 +207,161 @@ def write_program(data: bytes, blocks: pa.Table, corrected: pa.Table, *, source_
     text = (f"(CORRECTED PROGRAM - MACHINING ERROR COMPENSATION - {moved} OF {n} MOTION BLOCKS CHANGED"
             f" - MAX MOVE {float(move_um.max()):.1f} UM - {clipped} CLIPPED"
             + (f" AT {max_move_um:g} UM" if max_move_um is not None else "")
-            + f" - {rounds} ROUND{'S' if rounds != 1 else ''} - SOURCE SHA256 {sha.upper()})")
+            + f" - {rounds} ROUND{'S' if rounds != 1 else ''} - SOURCE SHA256 {sha.upper()})").encode("ascii")
     at = _header_line(lines)
-    eol = b"\r" if lines[at].endswith(b"\r") else b""
-    out.insert(at + 1, text.encode("ascii") + eol)
-    return b"\n".join(out)
+    first_line = lines[max(at, 0)]
+    eol = b"\r\n" if first_line.endswith(b"\r") else b"\n"
+    if at < 0:
+        return text + eol + out
+    hpos = int(sc["line_start"][at + 1]) if at + 1 < sc["line_start"].size else len(data)
+    # edits before the header position change its offset in the output
+    before = start[order] < hpos
+    shift = int(((body[order] != 0).sum(1) - (end[order] - start[order]))[before].sum())
+    hpos += shift
+    if hpos >= len(out) and not out.endswith(b"\n"):
+        return out + eol + text
+    return out[:hpos] + text + eol + out[hpos:]
 
 
+def _splice(data: bytes, start, end, body) -> bytes:
+    """``data`` with the byte ranges [start, end) (sorted, disjoint) replaced by the rows of ``body``
+    (uint8 matrix, 0 = padding), assembled with one gather instead of a Python loop."""
+    raw = np.frombuffer(data, np.uint8)
+    mask = body != 0
+    blen = mask.sum(1)
+    bbytes = body[mask]
+    src = np.concatenate([raw, bbytes])
+    boff = raw.size + np.concatenate(([0], np.cumsum(blen)[:-1]))
+    gap_start = np.concatenate(([0], end))
+    gap_len = np.concatenate((start, [raw.size])) - gap_start
+    seg_start = np.empty(2 * start.size + 1, np.int64)
+    seg_len = np.empty(2 * start.size + 1, np.int64)
+    seg_start[0::2], seg_len[0::2] = gap_start, gap_len
+    seg_start[1::2], seg_len[1::2] = boff, blen
+    total = int(seg_len.sum())
+    first = np.concatenate(([0], np.cumsum(seg_len)[:-1]))
+    idx = np.repeat(seg_start - first, seg_len) + np.arange(total)
+    return src[idx].tobytes()
+
+
+def _scan(data: bytes) -> dict:
+    """Every address word of the program outside comments, vectorised over bytes.
+
+    Returns arrays per word: letter (upper-case byte), line (0-based), value, vstart/vend (byte span
+    of the value text), decimals, dot, plus, lead0 (a digit before the point), wstart (letter
+    position), first (first word of its line), blank_before; and line_start (byte offset of each
+    line start).
+    """
+    raw = np.frombuffer(data, dtype=np.uint8)
+    cls = _CLASS[raw]
+    is_nl = cls == _NL
+    line_of = np.cumsum(is_nl) - is_nl              # newline byte belongs to its own line
+    line_start = np.concatenate(([0], np.flatnonzero(is_nl) + 1))
+    opens, closes = cls == _OPEN, cls == _CLOSE
+    comment = np.zeros(raw.size, bool)
+    if opens.any() or closes.any():
+        depth = np.cumsum(opens) - np.cumsum(closes)
+        comment = (depth > 0) | closes
+    semi = (cls == _SEMI) & ~comment
+    if semi.any():
+        cs = np.cumsum(semi)
+        start_cs = np.concatenate(([0], cs[is_nl]))
+        comment |= (cs - start_cs[line_of]) > 0
+    pct_line = np.zeros(line_start.size, bool)
+    first_code = np.flatnonzero((cls != _BLANK) & ~is_nl)
+    if first_code.size:
+        fl = line_of[first_code]
+        firsts = first_code[np.concatenate(([True], fl[1:] != fl[:-1]))]
+        pct_line[line_of[firsts[raw[firsts] == 37]]] = True
+    letter = (cls == _LETTER) & ~comment & ~pct_line[line_of]
+    num = (cls == _NUM) & ~comment
+    pos = np.flatnonzero(letter)
+    boundary = letter | comment | is_nl
+    big = raw.size
+    nxt_b = np.where(boundary, np.arange(raw.size), big)
+    nxt_b = np.minimum.accumulate(nxt_b[::-1])[::-1]
+    nxt_b = np.append(nxt_b, big)
+    w_end = nxt_b[np.minimum(pos + 1, big)]
+    nxt_num = np.where(num, np.arange(raw.size), big)
+    nxt_num = np.append(np.minimum.accumulate(nxt_num[::-1])[::-1], big)
+    prv_num = np.maximum.accumulate(np.where(num, np.arange(raw.size), -1))
+    vstart = nxt_num[np.minimum(pos + 1, big)]
+    vend = prv_num[np.maximum(w_end - 1, 0)] + 1
+    has_v = vstart < w_end
+    vstart = np.where(has_v, vstart, pos + 1)
+    vend = np.where(has_v, np.maximum(vend, vstart), pos + 1)
+    # value text properties
+    dotpos = np.where(raw == 46, np.arange(raw.size), big)
+    dotpos = np.append(np.minimum.accumulate(dotpos[::-1])[::-1], big)[vstart]
+    dot = dotpos < vend
+    decimals = np.where(dot, vend - dotpos - 1, 0)
+    c0 = raw[np.minimum(vstart, big - 1)]
+    sign = has_v & ((c0 == 43) | (c0 == 45))
+    body0 = raw[np.minimum(vstart + sign, big - 1)]
+    lead0 = ~(has_v & (body0 == 46))
+    plus = has_v & (c0 == 43)
+    wline = line_of[pos]
+    first = np.concatenate(([True], wline[1:] != wline[:-1])) if pos.size else np.zeros(0, bool)
+    blank_before = (pos > 0) & (cls[np.maximum(pos - 1, 0)] == _BLANK)
+    # values: only needed for X Y Z I J K R (Python float on their text; exact like the parser)
+    value = np.full(pos.size, np.nan)
+    want = np.isin(_UPPER[raw[pos]], np.frombuffer(b"XYZIJKR", np.uint8)) & has_v
+    idx = np.flatnonzero(want)
+    if idx.size:
+        value[idx] = _numbers(raw, vstart[idx], vend[idx] - vstart[idx], _UPPER[raw[pos[idx]]],
+                              line_of[pos[idx]], _Errors("<program>"))
+    return {"letter": _UPPER[raw[pos]], "line": wline, "value": value, "vstart": vstart, "vend": vend,
+            "decimals": decimals, "dot": dot, "plus": plus, "lead0": lead0, "wstart": pos, "first": first,
+            "blank_before": blank_before, "line_start": line_start}
+
+
+def _format(values, decimals, plus, lead0) -> np.ndarray:
+    """Fixed-point text of every value (``decimals`` ≥ 1 each), vectorised.
+
+    Returns a uint8 matrix, one right-aligned row per value, 0 = padding. ``plus``: write ``+`` on
+    non-negative values; ``lead0=False``: no ``0`` before the point (``-.5``).
+    """
+    decimals = np.maximum(decimals.astype(np.int64), 1)
+    k = np.rint(values * 10.0 ** decimals)
+    neg = k < 0                                  # −0 is written 0
+    k = np.abs(k).astype(np.int64)
+    p10 = 10 ** np.arange(19, dtype=np.int64)
+    n_dig = np.searchsorted(p10, k, side="right")            # digits of k (0 for k = 0)
+    n_int = np.maximum(n_dig - decimals, np.where(lead0, 1, 0))
+    width = int((decimals + n_int).max()) + 2 if values.size else 2
+    r = np.arange(width)[::-1][None, :]                      # position from the right
+    d = decimals[:, None]
+    digit_idx = np.where(r < d, r, r - 1)
+    digits = (k[:, None] // p10[np.clip(digit_idx, 0, 18)]) % 10 + 48
+    is_digit = (r < d) | ((r > d) & (r <= d + n_int[:, None]))
+    sign_at = d + n_int[:, None] + 1
+    out = np.where(is_digit, digits, 0)
+    out = np.where(r == d, 46, out)
+    out = np.where((r == sign_at) & neg[:, None], 45, out)
+    out = np.where((r == sign_at) & ~neg[:, None] & plus[:, None], 43, out)
+    return out.astype(np.uint8)
+
+
+def _insert_positions(wl, w_row, n, rows, letters):
+    """Where added words go: after the last word of an earlier letter in _ORDER, else before the first."""
+    rank_of = np.full(256, -1, np.int64)
+    for i, ch in enumerate(_ORDER):
+        rank_of[ord(ch)] = i
+    wr = rank_of[wl["letter"]]
+    ends = np.full((n, len(_ORDER)), -1, np.int64)
+    ok = wr >= 0
+    np.maximum.at(ends, (w_row[ok], wr[ok]), wl["vend"][ok])
+    cum = np.maximum.accumulate(ends, axis=1)
+    first_word = np.full(n, -1, np.int64)
+    fw = np.flatnonzero(wl["first"])
+    first_word[w_row[fw]] = wl["wstart"][fw]
+    spaced = np.zeros(n, bool)
+    np.logical_or.at(spaced, w_row, wl["blank_before"] & ~wl["first"])
+    rank = rank_of[letters]
+    after = np.where(rank > 0, cum[rows, np.maximum(rank - 1, 0)], -1)
+    lead = after >= 0
+    pos = np.where(lead, after, first_word[rows])
+    return pos, lead, spaced[rows]
 def _header_line(lines) -> int:
     """Index of the line after which the header goes: the O line, else the first %, else before line 0."""
     first_pct = None
@@ -217,31 +378,6 @@ def _header_line(lines) -> int:
             continue
         break
     return first_pct if first_pct is not None else -1
-
-
-def _edit_line(line: bytes, parsed, edits: dict) -> bytes:
-    words, order = parsed
-    repl = []                                   # (start, end, bytes)
-    for letter, text in edits.items():
-        if letter in words:
-            w = words[letter]
-            repl.append((w.start, w.end, text.encode()))
-    added = [(letter, text) for letter, text in edits.items() if letter not in words]
-    if added:
-        sep = b" " if any(line[e:e + 1] in (b" ", b"\t") for _, _, e in order[:-1]) or b" " in line.split(b"(")[0].strip() else b""
-        groups = {}                              # insertion position → words, in _ORDER
-        for letter, text in sorted(added, key=lambda t: _ORDER.index(t[0])):
-            rank = _ORDER.index(letter)
-            after = [e for l, s, e in order if l in _ORDER and _ORDER.index(l) < rank]
-            pos, lead = (max(after), True) if after else ((order[0][1] if order else 0), False)
-            groups.setdefault((pos, lead), []).append(letter.encode() + text.encode())
-        for (pos, lead), ws in groups.items():
-            body = sep.join(ws)
-            repl.append((pos, pos, sep + body if lead else body + sep))
-    out = line
-    for s, e, b in sorted(repl, key=lambda t: (t[0], t[1]), reverse=True):
-        out = out[:s] + b + out[e:]
-    return out
 
 
 def reverse_check(text: bytes, blocks: pa.Table, corrected: pa.Table, path: str = "<corrected>",

@@ -1,0 +1,65 @@
+"""Benchmark: corrected vertices per second (stage ``correct``) on a 300,000-vertex program.
+
+Goal (issue 5): ≥ 100,000 corrected vertices/s (seed 003 needed ~3.5 s for 30,000 tool points on a
+GPU). Run: ``python bench/bench_correct.py [--blocks N]``. The program is the synthetic raster of
+tests/ncprograms.py (rows of short G1 moves joined by arcs); every cutting pass gets an error and a
+normal, so every vertex and every arc is corrected. Also times writing the corrected program text
+and its reverse check (parse again), which are not part of the figure.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+
+import numpy as np
+import pyarrow as pa
+
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
+from stages.correct import correct_once  # noqa: E402
+from stages.nc_writer import reverse_check, write_program  # noqa: E402
+from stages.parse import parse_program  # noqa: E402
+from stages.split import split_blocks  # noqa: E402
+from tests.ncprograms import raster_program  # noqa: E402
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--blocks", type=int, default=300_000)
+    ap.add_argument("--repeat", type=int, default=3)
+    a = ap.parse_args()
+    data = raster_program(a.blocks)
+    params = {"split": {"chord_tol_mm": 0.001, "max_pass_mm": 5.0, "merge_max_mm": 0.5},
+              "machine": {"rapid_mm_min": 30000.0}, "tool": {"type": "ball", "diameter_mm": 6.0, "control_point": "tip"}}
+    blocks, _ = parse_program(data, "bench.nc", "bench")
+    passes = split_blocks(blocks, params)
+    rng = np.random.default_rng(0)
+    n = passes.num_rows
+    nrm = rng.normal(size=(n, 3)) * [0.3, 0.3, 1.0]
+    nrm /= np.linalg.norm(nrm, axis=1)[:, None]
+    cut = passes.column("motion").to_numpy() != 0
+    errors = pa.table({"program_id": ["bench"] * n, "pass_id": passes.column("pass_id"),
+                       "err_um": rng.normal(5.0, 3.0, n), "nx": nrm[:, 0], "ny": nrm[:, 1], "nz": nrm[:, 2]}).filter(pa.array(cut))
+    p = {"correct": {"max_move_um": 50.0}}
+    best = np.inf
+    for _ in range(a.repeat):
+        t = time.perf_counter()
+        corrected = correct_once(blocks, passes, errors, p)
+        best = min(best, time.perf_counter() - t)
+    nv = corrected.num_rows
+    n_arc = int(np.isin(corrected.column("motion").to_numpy(), (2, 3)).sum())
+    t = time.perf_counter()
+    text = write_program(data, blocks, corrected)
+    t_write = time.perf_counter() - t
+    t = time.perf_counter()
+    rep = reverse_check(text, blocks, corrected)
+    t_check = time.perf_counter() - t
+    print(f"program: {blocks.num_rows} motion blocks, {n} passes ({errors.num_rows} with errors), {n_arc} arcs")
+    print(f"correct_once: {nv} vertices in {best:.3f} s = {nv / best:,.0f} corrected vertices/s (goal >= 100,000)")
+    print(f"write_program: {t_write:.3f} s ({nv / t_write:,.0f} blocks/s); reverse check {t_check:.3f} s: "
+          f"ok={rep['ok']} max deviation {rep['max_dev_um']:.3f} um")
+
+
+if __name__ == "__main__":
+    main()
