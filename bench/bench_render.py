@@ -1,7 +1,7 @@
 """gl vs cpu back end on the same windows, measured in one run (seed 000 para 0097: 8.9× on the
 cylinder, 110.8× on a real mould for its GPU vs software method).
 
-Builds the generating-point windows (layers W, T1, T2, M seen from below) of every contour level
+Builds the generating-point windows (layers W, T1, T2, M, T1 near seen from below) of every contour level
 of the cylinder benchmark (Fig. 16) once, then renders exactly the same scene with both back ends,
 and also times the whole ``generating`` and ``cut_filter`` stages with each back end.
 
@@ -41,9 +41,10 @@ def build(ppm):
                   2 * R, 2 * R, ppm, zlo, zhi) for t, a in zip(tips, fd)]
     s_p = pg.s0[levels] + np.linalg.norm(tips - pg.p0[levels], axis=1)
     f = gen.feed_per_tooth(pg, TOOL["flutes"], 1 / ppm)[levels]
+    gap = gen.own_path_gap(shape, f, cf_stage.fine_tolerance(ppm))
     scene = gen._layer_scene(views, pg, pg.motion != 0, s_p, f, pg.sweep_bounds(shape), wp, mesh,
-                             tips, fd, coarse)
-    return dict(views=views * 4, scene=scene, pg=pg, shape=shape, wp=wp, levels=levels, tips=tips)
+                             tips, fd, coarse, gap)
+    return dict(views=views * gen.N_LAYERS, scene=scene, pg=pg, shape=shape, wp=wp, levels=levels, tips=tips)
 
 
 def main():

@@ -107,9 +107,12 @@ def cut_filter(pg: geo.PassGeometry, shape: geo.ToolShape, wp: geo.Workpiece, re
             out["is_cutting"][i] = True
             rows, cols = np.nonzero(cut)
             pts = v.pixel_points(rows, cols, imt.depth[cut] - tol)
+            # position along the pass of the tool axis nearest (in xy) to each cut pixel: the
+            # tool that cut a pixel stood over it (a 3-D projection would misplace descents)
             d = pg.p1[i] - pg.p0[i]
-            dd = float(d @ d)
-            t = np.clip((pts - pg.p0[i]) @ d / dd, 0, 1) if dd > 1e-18 else np.zeros(len(pts))
+            dd = float(d[:2] @ d[:2])
+            t = (np.clip((pts[:, :2] - pg.p0[i, :2]) @ d[:2] / dd, 0, 1) if dd > 1e-12
+                 else np.full(len(pts), 0.5))
             # median of the cut pixels: a position where this pass really cuts
             tm = float(np.sort(t)[(len(t) - 1) // 2])
             p = pg.p0[i] + tm * d

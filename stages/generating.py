@@ -48,6 +48,7 @@ PARAMS = ("tool", "render")
 ID_W, ID_T1, ID_T2, ID_M = 0, 1, 2, 3
 STEEP_DEG = 60.0          # claim 6: re-render along the normal above this contact angle
 PASSES_PER_BATCH = 8
+N_LAYERS = 5
 _redo_when_lost = True     # claim 6 also when nothing survives from below (tests switch it off)
 N_PHI = 180
 
@@ -79,10 +80,11 @@ def feed_per_tooth(pg: geo.PassGeometry, flutes: int, fallback_mm: float):
     return np.where((f > 0) & np.isfinite(f), f, fallback_mm)
 
 
-def _segments_around(pg, cutting, s_p, f, win_lo, win_hi, bounds):
-    """T1 / T2 segments for windows centred on path positions ``s_p`` (one per window).
+def _segments_around(pg, cutting, s_p, f, win_lo, win_hi, bounds, gap):
+    """Path pieces around path positions ``s_p`` (one per window), split at s_p - f and s_p + f.
 
-    Returns (t1_win, t1_a, t1_b), (t2_win, t2_a, t2_b): window index and segment ends.
+    Returns three (window, a, b) segment lists: T1 far (path up to s_p - f - gap), T1 near
+    (s_p - f - gap to s_p - f) and T2 far (from s_p + f + gap on).
     """
     ov = geo.overlaps(win_lo, win_hi, bounds[:, 0], bounds[:, 1]) & cutting[None, :]
     w, j = np.nonzero(ov)
@@ -90,19 +92,23 @@ def _segments_around(pg, cutting, s_p, f, win_lo, win_hi, bounds):
     S = pg.s0[j]
     d = pg.p1[j] - pg.p0[j]
     Ls = np.where(L > 1e-12, L, 1.0)
-    e1 = s_p[w] - f[w]                                   # T1 ends here
-    e2 = s_p[w] + f[w]                                   # T2 starts here
-    has1 = (S < e1) | ((L <= 1e-12) & (S <= e1))
-    t1 = np.clip((e1 - S) / Ls, 0, 1)
-    has2 = (S + L > e2) | ((L <= 1e-12) & (S >= e2))
-    t2 = np.clip((e2 - S) / Ls, 0, 1)
-    a1, b1 = pg.p0[j], pg.p0[j] + t1[:, None] * d
-    a2, b2 = pg.p0[j] + t2[:, None] * d, pg.p1[j]
-    return (w[has1], a1[has1], b1[has1]), (w[has2], a2[has2], b2[has2])
+    point = L <= 1e-12
+
+    def piece(lo, hi):                      # part of each pass inside path interval [lo, hi]
+        has = ((S < hi) & (S + L > lo)) | (point & (S >= lo) & (S <= hi))
+        ta = np.clip((lo - S) / Ls, 0, 1)
+        tb = np.clip((hi - S) / Ls, 0, 1)
+        return (w[has], pg.p0[j][has] + ta[has, None] * d[has], pg.p0[j][has] + tb[has, None] * d[has])
+
+    e1 = s_p[w] - f[w]
+    e2 = s_p[w] + f[w]
+    g = gap[w]
+    return piece(-np.inf, e1 - g), piece(e1 - g, e1), piece(e2 + g, np.inf)
 
 
-def _layer_scene(views, pg, cutting, s_p, f, bounds, wp, mesh, m_tips, m_feed, coarse):
-    """Scene of the four layers (W, T1, T2, M) for ``views``; layer k of view i is window k*n+i.
+def _layer_scene(views, pg, cutting, s_p, f, bounds, wp, mesh, m_tips, m_feed, coarse, gap):
+    """Scene of the layers (W, T1 far, T2 far, M, T1 near) for ``views``: layer k of view i is
+    window k*n+i.
 
     Sweep ends within one tool radius (xy) of the window's prediction point use the fine mesh:
     only they can bound the surface M leaves; the others use the coarse mesh.
@@ -116,13 +122,15 @@ def _layer_scene(views, pg, cutting, s_p, f, bounds, wp, mesh, m_tips, m_feed, c
 
     d = np.asarray(views[0].view_dir, float)
     lo, hi = geo.window_xy_bounds(views)
-    (w1, a1, b1), (w2, a2, b2) = _segments_around(pg, cutting, s_p, f, lo, hi, bounds)
-    wb = (np.tile(lo, (4, 1)), np.tile(hi, (4, 1)))
+    segs = _segments_around(pg, cutting, s_p, f, lo, hi, bounds, gap)
+    (w1, a1, b1), (w4, a4, b4), (w2, a2, b2) = segs
+    wb = (np.tile(lo, (N_LAYERS, 1)), np.tile(hi, (N_LAYERS, 1)))
     parts = [geo.workpiece_scene(wp, views, ID_W)]
     # all views of a batch share the view direction only when seen from below; oblique views
     # are grouped one per scene part (culling depends on the direction)
     per_view = not all(np.allclose(v.view_dir, d) for v in views)
-    for layer, (w, a, b, ident) in enumerate([(w1, a1, b1, ID_T1), (w2, a2, b2, ID_T2)], start=1):
+    for layer, (w, a, b, ident) in ((1, (w1, a1, b1, ID_T1)), (2, (w2, a2, b2, ID_T2)),
+                                    (4, (w4, a4, b4, ID_T1))):
         if per_view:
             for i, v in enumerate(views):
                 s = w == i
@@ -145,13 +153,42 @@ def _scene(tris, window, ident, a, b):
     return make_scene(tris, window, ident, a=a, b=b)
 
 
-def _composite(layers):
-    """Surviving and cutting masks from the (W, T1, T2, M) images of one window."""
-    W, T1, T2, M = layers
+def _composite(layers, strip):
+    """Surviving and cutting masks from the (W, T1 far, T2 far, M, T1 near) layers of a window.
+
+    ``strip`` marks the pixels of M between the bisectors with its own path at p - f and p + f
+    (see :func:`_own_path_strip`), which stands in for the own path within ``gap`` of p.
+    """
+    W, T1, T2, M, T1n = layers
     over_stock = (W.id >= 0) & (M.id >= 0) & (M.depth < W.depth)
-    cut = over_stock & (M.depth < T1.depth)
-    surv = cut & (M.depth < T2.depth)
+    cut = over_stock & (M.depth < T1.depth) & (M.depth < T1n.depth)
+    surv = over_stock & (M.depth < T1.depth) & (M.depth < T2.depth) & strip
     return surv, cut
+
+
+def _own_path_strip(M, shape, u, feed_deg, f):
+    """Pixels of M in front of the envelope copies at p - f·u and p + f·u, from the pixel values.
+
+    Neighbouring tool positions one tooth feed apart differ in depth by only ~(f/2)²/(2 rc)
+    around the surface they leave (0.4 µm for f = 0.125 mm, rc = 5 mm): far below any
+    polygonisation tolerance, so this comparison is done in closed form. For the ball (and the
+    torus corner, locally) a point of M with envelope normal N lies in front of both copies iff
+    ``|rc N·u| < f/2`` (bisector planes of the corner centres); N comes from the pixel's (q, φ).
+    """
+    q = np.radians(M.b.astype(float))
+    th = np.radians(M.a.astype(float) + feed_deg)
+    nu = np.sin(q) * np.cos(th) * u[0] + np.sin(q) * np.sin(th) * u[1] - np.cos(q) * u[2]
+    return (M.id >= 0) & (np.abs(shape.corner_mm * nu) < f / 2)
+
+
+def own_path_gap(shape, f, tol):
+    """Path distance beyond ±f over which the own path is replaced by the closed form.
+
+    Beyond f + gap the depth difference to M near the surface it leaves, (f + gap)²/(2 rc),
+    exceeds the polygonisation tolerance ~10×, so rendering decides reliably.
+    """
+    rc = max(shape.corner_mm, 0.25 * shape.radius_mm)
+    return np.maximum(0.0, np.sqrt(20.0 * rc * tol) - f)
 
 
 def _angles(M, mask):
@@ -215,12 +252,15 @@ def generating(pg, shape, wp, renderer, px_per_mm, predict_idx, pred_tips, flute
                       2 * R + 2 * margin, 2 * R + 2 * margin, px_per_mm, zlo, zhi)
                  for t, a in zip(tips, fd)]
         n = len(views)
-        scene = _layer_scene(views, pg, cutting, s_p, f, bounds, wp, mesh, tips, fd, coarse)
-        imgs = renderer.render(views * 4, scene)
+        gap = own_path_gap(shape, f, tol)
+        dirs = pg.p1[ii] - pg.p0[ii]
+        u = dirs / np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-12)
+        scene = _layer_scene(views, pg, cutting, s_p, f, bounds, wp, mesh, tips, fd, coarse, gap)
+        imgs = renderer.render(views * N_LAYERS, scene)
         redo = []                                     # (slot, estimated q, phi)
         for k in range(n):
-            layers = [imgs[k], imgs[n + k], imgs[2 * n + k], imgs[3 * n + k]]
-            surv, cut = _composite(layers)
+            layers = [imgs[L * n + k] for L in range(N_LAYERS)]
+            surv, cut = _composite(layers, _own_path_strip(layers[3], shape, u[k], fd[k], f[k]))
             slot = sl[k]
             eng[slot] = (_engagement(shape, views[k], layers, tips[k], fd[k], dz, n_phi, tol),
                          dz, (np.cos(np.radians(fd[k])), np.sin(np.radians(fd[k]))))
@@ -233,9 +273,11 @@ def generating(pg, shape, wp, renderer, px_per_mm, predict_idx, pred_tips, flute
             elif cut.any() and _redo_when_lost:
                 # nothing survives from below: estimate the place from the cut pixels closest
                 # to surviving (smallest depth margin behind T2)
+                strip = _own_path_strip(M, shape, u[k], fd[k], f[k])
+                cand = cut & strip if (cut & strip).any() else cut
                 with np.errstate(invalid="ignore"):
-                    margin_t2 = np.where(cut, M.depth - layers[2].depth, np.inf)
-                near_px = cut & (margin_t2 <= np.quantile(margin_t2[cut], 0.02))
+                    margin_t2 = np.where(cand, M.depth - layers[2].depth, np.inf)
+                near_px = cand & (margin_t2 <= np.quantile(margin_t2[cand], 0.02))
                 q, phi = _angles(M, near_px)
                 redo.append((k, max(q, STEEP_DEG), phi))
         if redo:
@@ -250,11 +292,11 @@ def generating(pg, shape, wp, renderer, px_per_mm, predict_idx, pred_tips, flute
                 ovs.append(View(tuple(c), tuple(nrm), upv, R, R, 2 * px_per_mm, -R / 2, 2 * R))
             n2 = len(ovs)
             scene = _layer_scene(ovs, pg, cutting, s_p[ks], f[ks], bounds, wp, mesh, tips[ks], fd[ks],
-                                  coarse)
-            imgs = renderer.render(ovs * 4, scene)
+                                 coarse, gap[ks])
+            imgs = renderer.render(ovs * N_LAYERS, scene)
             for r, k in enumerate(ks):
-                layers = [imgs[r], imgs[n2 + r], imgs[2 * n2 + r], imgs[3 * n2 + r]]
-                surv, _ = _composite(layers)
+                layers = [imgs[L * n2 + r] for L in range(N_LAYERS)]
+                surv, _ = _composite(layers, _own_path_strip(layers[3], shape, u[k], fd[k], f[k]))
                 if surv.any():
                     q, phi = _angles(layers[3], surv)
                     _store(gen, sl[k], ovs[r], layers[3], surv, q, phi, fd[k], "normal")
@@ -276,8 +318,8 @@ def _store(gen, slot, view, M, mask, q, phi, feed, how):
 
 def _engagement(shape, view, layers, tip, feed, dz, n_phi, tol):
     """E[k, j]: envelope point at height (k+.5)dz, angle (j+.5)360/n_phi inside the material."""
-    W, T1 = layers[0], layers[1]
-    h = np.where(W.id >= 0, np.minimum(W.depth, T1.depth), -np.inf)   # material top (z)
+    W, T1, T1n = layers[0], layers[1], layers[4]
+    h = np.where(W.id >= 0, np.minimum(np.minimum(W.depth, T1.depth), T1n.depth), -np.inf)  # top (z)
     top = np.max(h[np.isfinite(h)]) - tip[2] if np.isfinite(h).any() else 0.0
     n_z = int(np.clip(np.ceil(min(top, shape.stickout_mm) / dz), 1, None))
     z = (np.arange(n_z) + 0.5) * dz
