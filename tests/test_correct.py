@@ -278,12 +278,19 @@ class VirtualMachine:
         self.F, self.R, self.allow = centre_surface, radius, allow_um / 1000.0
         self.gain, self.side, self.step = np.array(gain_xy), side, step
 
-    def samples(self, passes, deflect=True):
-        """Ball centres along the cutting passes (mm) and the pass index of each."""
+    def samples(self, passes, deflect=True, box=None):
+        """Ball centres along the cutting passes (mm) and the pass index of each.
+
+        ``box`` = (x0, x1, y0, y1): only passes that come within the tool radius of it.
+        """
         g = lambda c: passes.column(c).to_numpy().astype(float)  # noqa: E731
         p0 = np.stack([g("x0_mm"), g("y0_mm"), g("z0_mm")], 1)
         p1 = np.stack([g("x1_mm"), g("y1_mm"), g("z1_mm")], 1)
         cut = passes.column("motion").to_numpy() != 0
+        if box is not None:
+            lo, hi = np.minimum(p0, p1), np.maximum(p0, p1)
+            r = self.R + 0.1
+            cut &= (hi[:, 0] > box[0] - r) & (lo[:, 0] < box[1] + r) & (hi[:, 1] > box[2] - r) & (lo[:, 1] < box[3] + r)
         idx = np.flatnonzero(cut)
         length = np.linalg.norm(p1[idx] - p0[idx], axis=1)
         k = np.maximum(1, np.ceil(length / self.step)).astype(int) + 1
@@ -312,7 +319,7 @@ class VirtualMachine:
 
     def surface(self, passes, xs, ys, deflect=True):
         """Lower envelope of the balls on the grid: height, generating pass, generating centre."""
-        c, owner = self.samples(passes, deflect)
+        c, owner = self.samples(passes, deflect, box=(xs[0], xs[-1], ys[0], ys[-1]))
         sel = (c[:, 0] > xs[0] - self.R) & (c[:, 0] < xs[-1] + self.R) & (c[:, 1] > ys[0] - self.R) & (c[:, 1] < ys[-1] + self.R)
         c, owner = c[sel], owner[sel]
         o = np.argsort(c[:, 1], kind="stable")
@@ -438,3 +445,80 @@ def test_closed_loop_freeform_raster():
           f" written program {final:.2f} µm = {100 * final / rms[0]:.1f} % of before")
     assert rms[0] > 3.0
     assert final <= 0.2 * rms[0]
+
+
+def test_writer_keeps_dialect_details():
+    # CRLF, words without spaces, "-.500" and "+1.000" styles, ';' and '( )' comments inside
+    # blocks, a G19 arc with J K
+    src = [b"%", b"O0009", b"(STYLE)", b"G90G17G21", b"T1M6", b"S1000M3", b"G0X-.500Y+1.000Z5.000",
+           b"G1Z0.000F100 ; plunge", b"X10.000(MID)Y+1.000", b"G19 G2 Y3.000 Z2.000 J1.000 K1.000",
+           b"G0Z50.000", b"M30", b"%", b""]
+    text = b"\r\n".join(src)
+    blocks, _ = parse_program(text, "t", "p")
+    passes = split_blocks(blocks, SPLIT)
+    cut = passes.column("motion").to_numpy() != 0
+    n = passes.num_rows
+    # every cutting pass leaves 10 µm along n = (0.6, 0, 0.8): every vertex moves by (−6, 0, −8) µm
+    err = _errors(passes, np.full(n, 10.0), np.tile([0.6, 0, 0.8], (n, 1))).filter(pa.array(cut))
+    c = correct_once(blocks, passes, err, {"correct": {}})
+    out = write_program(text, blocks, c).split(b"\r\n")
+    assert out[2].startswith(b"(CORRECTED PROGRAM") and out[2].endswith(b")")
+    assert out[:2] + out[3:] == [
+        b"%", b"O0009", b"(STYLE)", b"G90G17G21", b"T1M6", b"S1000M3", b"G0X-.506Y+1.000Z4.992",
+        b"G1Z-0.008F100 ; plunge", b"X9.994(MID)Y+1.000", b"G19 G2 Y3.000 Z1.992 J1.000 K1.000",
+        b"G0X10.000Z50.000", b"M30", b"%", b""]        # the retract's end has no predicted pass
+    assert reverse_check(b"\r\n".join(out), blocks, c)["ok"]
+    # no O line and no %: the header goes first
+    bare = b"\n".join(src[3:-2]) + b"\n"
+    b2, _ = parse_program(bare, "t", "p")
+    c2 = correct_once(b2, split_blocks(b2, SPLIT), err, {"correct": {}})
+    out2 = write_program(bare, b2, c2)
+    assert out2.startswith(b"(CORRECTED PROGRAM") and out2.split(b"\n")[1] == b"G90G17G21"
+
+
+def _sample_centre_surface(passes, radius, x_range, y_range, step=0.05):
+    """Ball-centre surface of a raster program along X: rows interpolated linearly along X (the CL
+    polyline) and by cubic splines across rows; returns (F, dF/dx, dF/dy) as a function of x, y."""
+    from scipy.interpolate import CubicSpline, RegularGridInterpolator
+    g = lambda c: passes.column(c).to_numpy()  # noqa: E731
+    row = (g("motion") != 0) & (np.abs(g("y1_mm") - g("y0_mm")) < 1e-9)
+    x0, x1, y, z0, z1 = (g(c)[row] for c in ("x0_mm", "x1_mm", "y0_mm", "z0_mm", "z1_mm"))
+    rows_y = np.unique(np.round(y, 3))
+    gx = np.arange(x_range[0] - radius - 2, x_range[1] + radius + 2, step)
+    zr = np.empty((rows_y.size, gx.size))
+    for i, yy in enumerate(rows_y):
+        s = np.abs(y - yy) < 1e-6
+        xx, zz = np.concatenate([x0[s], x1[s]]), np.concatenate([z0[s], z1[s]])
+        o = np.argsort(xx, kind="stable")
+        zr[i] = np.interp(gx, xx[o], zz[o]) + radius
+    spl = CubicSpline(rows_y, zr, axis=0)
+    gy = np.arange(max(y_range[0] - radius - 2, rows_y[0]), min(y_range[1] + radius + 2, rows_y[-1]), step)
+    f, fy = spl(gy), spl(gy, 1)
+    fx = np.gradient(f, gx, axis=1)
+    interp = [RegularGridInterpolator((gy, gx), a) for a in (f, fx, fy)]
+
+    def centre_surface(x, y):
+        q = np.stack([np.clip(y, gy[0], gy[-1]), np.clip(x, gx[0], gx[-1])], -1)
+        return tuple(i(q) for i in interp)
+    return centre_surface
+
+
+@pytest.mark.parametrize("window,limit", [((14.0, 24.0, 34.0, 44.0), 0.2), ((60.0, 72.0, 36.0, 44.0), 0.3)])
+def test_closed_loop_sample_finishing_program(window, limit):
+    """The sample finishing program (OpenCAMLib raster, Ø10 ball) on the virtual machine, in a window.
+
+    The residual floor here is the cusp pattern shifted sideways by the tangential part of the
+    deflection (a ball displaced along the surface moves its 0.6 mm-stepover cusps), which a
+    correction along the normal (para 0084: the error is known along n only) cannot see; it weighs
+    more where the surface is flat (the second window: slopes below 40°, smaller errors).
+    """
+    data = open(SAMPLES[1], "rb").read()
+    blocks, _ = parse_program(data, SAMPLES[1], "p")
+    passes = split_blocks(blocks, SPLIT)
+    x0, x1, y0, y1 = window
+    vm = VirtualMachine(_sample_centre_surface(passes, 5.0, (x0, x1), (y0, y1)), 5.0, allow_um=60.0)
+    rms, final, _ = _closed_loop(data, vm, np.arange(x0, x1, 0.1), np.arange(y0, y1, 0.1),
+                                 {"max_move_um": 100.0, "tol_um": 0.2})
+    print(f"\nsample {SAMPLES[1]} window x{x0:g}-{x1:g} y{y0:g}-{y1:g}: RMS error {rms[0]:.2f} µm before, rounds "
+          f"{['%.2f' % r for r in rms[1:]]}, written program {final:.2f} µm = {100 * final / rms[0]:.1f} % of before")
+    assert final <= limit * rms[0]
