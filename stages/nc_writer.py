@@ -421,40 +421,79 @@ def reverse_check(text: bytes, blocks: pa.Table, corrected: pa.Table, path: str 
     return rep
 
 
-def write_ln_program(corrected: pa.Table, name: str = "CORRECTED", blocks: pa.Table | None = None,
-                     use_new: bool = True, decimals: int = 4) -> str:
-    """Heidenhain-style program: one ``L``/``LN`` block per NC vertex with the surface normal.
+def write_ln_program(blocks: pa.Table, corrected: pa.Table, name: str = "CORRECTED", use_new: bool = True,
+                     chord_tol_mm: float = 0.001, decimals: int = 4) -> str:
+    """Heidenhain-style program: ``LN`` blocks with the surface normals of the corrected path.
 
-    ``LN X.. Y.. Z.. NX.. NY.. NZ..`` for vertices with a normal (a predicted pass meets them), plain
-    ``L`` elsewhere, ``FMAX`` for rapids. Arcs are written as their end points (controls that
-    compensate along normals take straight LN blocks; refine arcs before when they matter).
-    ``use_new=False`` writes the original path with normals, for controls that apply the
-    compensation themselves (3D-ToolComp with :func:`write_comp_table`); do not use the corrected
-    path and the table together, that corrects twice. Coordinates are those of the source program
-    (tool tip unless ``tool.control_point`` says centre).
+    One block per NC vertex: ``LN X.. Y.. Z.. NX.. NY.. NZ..`` where a predicted pass meets the
+    vertex (its unit normal, out of material), plain ``L`` elsewhere, ``FMAX`` for rapids, ``F`` when
+    the feed changes. LN blocks are straight, so arcs are written as chords within
+    ``chord_tol_mm`` of the (refitted) arc, each with the arc's end normal turned about the arc axis
+    to the chord point. ``use_new=False`` writes the original path with normals, for controls that
+    apply the compensation themselves (3D-ToolComp with :func:`write_comp_table`); do not use the
+    corrected path and the table together, that corrects twice. Coordinates are in the frame of the
+    source program (tool tip unless ``tool.control_point`` says centre).
     """
+    from stages.split import arc_chords
     cols = ("x_new_mm", "y_new_mm", "z_new_mm") if use_new else ("x_mm", "y_mm", "z_mm")
     p = np.stack([_table_np(corrected, c) for c in cols], 1)
     nrm = np.stack([_table_np(corrected, c) for c in ("nx", "ny", "nz")], 1)
     motion = _table_np(corrected, "motion", np.int64)
+    bno = _table_np(blocks, "block_no", np.int64)
+    rows = np.searchsorted(bno, _table_np(corrected, "block_no", np.int64))
+    feed = np.nan_to_num(_table_np(blocks, "feed_mm_min")[rows])
+    plane = _table_np(blocks, "plane", np.int64)[rows]
+    if use_new:
+        centre = np.stack([_table_np(corrected, c) for c in ("cx_new_mm", "cy_new_mm", "cz_new_mm")], 1)
+    else:
+        centre = np.stack([_table_np(blocks, c) for c in ("cx_mm", "cy_mm", "cz_mm")], 1)[rows]
+    start = np.vstack([p[:1], p[:-1]])
+    # expand arcs into chord end points; lines keep their vertex
+    arc = np.flatnonzero(((motion == 2) | (motion == 3)) & ~np.isnan(centre).any(1))
+    pts, nn, src = p, nrm, np.arange(p.shape[0])
+    if arc.size:
+        owner, _, q1 = arc_chords(start[arc], p[arc], centre[arc], plane[arc], motion[arc] == 3, chord_tol_mm)
+        axis = np.zeros((arc.size, 3))
+        axis[np.arange(arc.size), np.array([{17: 2, 18: 1, 19: 0}[int(v)] for v in plane[arc]])] = 1.0
+        # turn the end normal about the arc axis by the angle from the end to the chord point
+        c, e = centre[arc][owner], p[arc][owner]
+        ax = axis[owner]
+        u, v = e - c, q1 - c
+        u -= np.einsum("ij,ij->i", u, ax)[:, None] * ax
+        v -= np.einsum("ij,ij->i", v, ax)[:, None] * ax
+        ang = np.arctan2(np.einsum("ij,ij->i", np.cross(u, v), ax), np.einsum("ij,ij->i", u, v))
+        n0 = nrm[arc][owner]
+        cos, sin = np.cos(ang)[:, None], np.sin(ang)[:, None]
+        n1 = n0 * cos + np.cross(ax, n0) * sin + ax * np.einsum("ij,ij->i", ax, n0)[:, None] * (1 - cos)
+        keep = np.ones(p.shape[0], bool)
+        keep[arc] = False
+        line_rows = np.flatnonzero(keep)
+        order_key = np.concatenate([line_rows.astype(float), arc[owner] + (np.arange(owner.size) + 1.0) / (owner.size + 2)])
+        o = np.argsort(order_key, kind="stable")
+        pts = np.concatenate([p[line_rows], q1])[o]
+        nn = np.concatenate([nrm[line_rows], n1])[o]
+        src = np.concatenate([line_rows, arc[owner]])[o]
     out = [f"0 BEGIN PGM {name} MM"]
     prev = np.full(3, np.nan)
+    prev_f = None
     k = 1
-    fmt = f"{{:+.{decimals}f}}"
-    for i in range(p.shape[0]):
-        words = []
-        for a, letter in enumerate("XYZ"):
-            if not np.isclose(p[i, a], prev[a], atol=0.5 * 10.0 ** -decimals, rtol=0):
-                words.append(letter + fmt.format(p[i, a]))
+    res = 0.5 * 10.0 ** -decimals
+    for i in range(pts.shape[0]):
+        words = [f"{letter}{pts[i, a]:+.{decimals}f}" for a, letter in enumerate("XYZ")
+                 if not abs(pts[i, a] - prev[a]) <= res]
         if not words:
             continue
-        prev = p[i]
-        has_n = motion[i] != 0 and np.all(np.isfinite(nrm[i]))
+        prev = pts[i]
+        r = src[i]
+        has_n = motion[r] != 0 and np.all(np.isfinite(nn[i]))
         line = f"{k} {'LN' if has_n else 'L'} " + " ".join(words)
         if has_n:
-            line += " " + " ".join(f"N{letter}{v:+.7f}" for letter, v in zip("XYZ", nrm[i]))
-        if motion[i] == 0:
+            line += " " + " ".join(f"N{letter}{v:+.7f}" for letter, v in zip("XYZ", nn[i]))
+        if motion[r] == 0:
             line += " FMAX"
+        elif feed[r] != prev_f:
+            line += f" F{feed[r]:g}"
+            prev_f = feed[r]
         out.append(line)
         k += 1
     out.append(f"{k} END PGM {name} MM")

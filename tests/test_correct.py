@@ -240,13 +240,34 @@ def test_random_arc_moves_stay_consistent():
             assert abs(r0 - r1) < ARC_RADIUS_TOL_MM / 2
 
 
+def test_ln_arcs_become_chords_on_the_refitted_circle():
+    text = b"\n".join([b"%", b"O0011", b"G90 G21 G17", b"T1 M6", b"S1000 M3", b"G0 X10.000 Y0.000 Z0.000",
+                       b"G1 X10.000 Y0.000 F500", b"G3 X0.000 Y10.000 I-10.000 J0.000", b"M30", b"%", b""])
+    blocks, _ = parse_program(text, "t", "p")
+    passes = split_blocks(blocks, SPLIT)
+    mid = (np.stack([passes.column(c).to_numpy() for c in ("x0_mm", "y0_mm")], 1)
+           + np.stack([passes.column(c).to_numpy() for c in ("x1_mm", "y1_mm")], 1)) / 2
+    radial = mid / np.linalg.norm(mid, axis=1)[:, None]
+    err = _errors(passes, np.full(len(mid), 10.0), np.column_stack([radial, np.zeros(len(mid))]))
+    c = correct_once(blocks, passes, err, {"correct": {}})
+    ln = write_ln_program(blocks, c, "ARC", chord_tol_mm=0.001).splitlines()
+    pts = np.array([[float(w[1:]) for w in s.split() if w[0] in "XY" and w[1] in "+-"] for s in ln if " LN " in s and "X" in s and "Y" in s])
+    nrm = np.array([[float(w[2:]) for w in s.split() if w[:2] in ("NX", "NY")] for s in ln if " LN " in s and "X" in s and "Y" in s])
+    r = np.linalg.norm(pts, axis=1)
+    assert len(pts) > 50
+    np.testing.assert_allclose(r, 9.990, atol=2e-4)                  # 10 µm left outside → radius −10 µm
+    # normals radial at every chord point, within one chord angle (the end normal is that of the
+    # last chord pass, whose normal is taken at its middle)
+    np.testing.assert_allclose(nrm, pts / r[:, None], atol=0.03)
+
+
 def test_ln_and_comp_table():
     data, blocks, passes = _load(SAMPLES[1])
     err = _random_errors(passes, 5)
     q = np.random.default_rng(0).uniform(0, 90, err.num_rows)
     err = err.append_column("contact_deg", pa.array(q))
     c = correct_once(blocks, passes, err, {"correct": {}})
-    ln = write_ln_program(c, "MOULD")
+    ln = write_ln_program(blocks, c, "MOULD")
     lines = ln.splitlines()
     assert lines[0] == "0 BEGIN PGM MOULD MM" and lines[-1].endswith("END PGM MOULD MM")
     lnb = [s for s in lines if " LN " in s]
@@ -522,3 +543,24 @@ def test_closed_loop_sample_finishing_program(window, limit):
     print(f"\nsample {SAMPLES[1]} window x{x0:g}-{x1:g} y{y0:g}-{y1:g}: RMS error {rms[0]:.2f} µm before, rounds "
           f"{['%.2f' % r for r in rms[1:]]}, written program {final:.2f} µm = {100 * final / rms[0]:.1f} % of before")
     assert final <= limit * rms[0]
+
+
+def test_merged_pass_interior_and_untouched_neighbours():
+    # ten 0.1 mm blocks merge into passes ≤ 0.5 mm; one predicted pass: its interior vertices and
+    # both ends move by −e·n, every other vertex stays
+    lines = [b"%", b"O0010", b"G90 G17 G21", b"T1 M6", b"S1000 M3", b"G0 X0.000 Y0.000 Z1.000", b"G1 Z0.000 F100"]
+    lines += [b"X%.3f" % (0.1 * (i + 1)) for i in range(30)] + [b"G0 Z10.000", b"M30", b"%", b""]
+    text = b"\n".join(lines)
+    blocks, _ = parse_program(text, "t", "p")
+    passes = split_blocks(blocks, SPLIT)
+    b0, b1 = passes.column("block_no").to_numpy(), passes.column("block_end").to_numpy()
+    k = int(np.flatnonzero(b1 - b0 >= 2)[1])             # a merged pass in the middle of the row
+    n = np.array([[0.0, 0.6, 0.8]])
+    err = _errors(passes.slice(k, 1), [5.0], n)
+    c = correct_once(blocks, passes, err, {"correct": {}})
+    bn = c.column("block_no").to_numpy()
+    d = np.stack([c.column(f"{a}_new_mm").to_numpy() - c.column(f"{a}_mm").to_numpy() for a in "xyz"], 1) * 1000
+    moved = (bn >= b0[k] - 1) & (bn <= b1[k])               # start vertex (end of the block before) … end
+    np.testing.assert_allclose(d[moved], np.tile(-5.0 * n, (moved.sum(), 1)), atol=1e-9)
+    assert np.all(d[~moved] == 0)
+    assert moved.sum() == b1[k] - b0[k] + 2
