@@ -40,7 +40,8 @@ def main():
     nrm /= np.linalg.norm(nrm, axis=1)[:, None]
     cut = passes.column("motion").to_numpy() != 0
     errors = pa.table({"program_id": ["bench"] * n, "pass_id": passes.column("pass_id"),
-                       "err_um": rng.normal(5.0, 3.0, n), "nx": nrm[:, 0], "ny": nrm[:, 1], "nz": nrm[:, 2]}).filter(pa.array(cut))
+                       "err_um": rng.normal(5.0, 3.0, n), "nx": nrm[:, 0], "ny": nrm[:, 1], "nz": nrm[:, 2]})
+    errors = errors.filter(pa.array(cut))
     p = {"correct": {"max_move_um": 50.0}}
     best = np.inf
     for _ in range(a.repeat):

@@ -166,8 +166,6 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
         pend = _xyz(passes, ("x1_mm", "y1_mm", "z1_mm"))
         pstart = _xyz(passes, ("x0_mm", "y0_mm", "z0_mm"))
         # node k: start of pass k (k < P) / end of pass P−1 (k = P); between passes k−1 and k
-        before = np.arange(n_pass + 1) - 1
-        after = np.arange(n_pass + 1)
         has_b = np.concatenate(([False], has))
         has_a = np.concatenate((has, [False]))
         eb, ea = np.concatenate(([0.0], err)), np.concatenate((err, [0.0]))
@@ -218,7 +216,7 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
     centre = np.full((nb, 3), np.nan)
     arc = (motion == 2) | (motion == 3)
     if arc.any():
-        centre[arc] = _refit_arcs(blk, arc, end, new, orig, max_move, passes, node_move, node_xyz,
+        centre[arc] = _refit_arcs(blk, arc, end, new, max_move, passes, node_move, node_xyz,
                                   frame if n_pass else np.zeros(3))
 
     return pa.table({
@@ -238,7 +236,7 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
     }, schema=SCHEMA)
 
 
-def _refit_arcs(blk, arc, end, new, orig, max_move, passes, node_move, node_xyz, frame):
+def _refit_arcs(blk, arc, end, new, max_move, passes, node_move, node_xyz, frame):
     """New centres (absolute mm) of the arc rows, fitted through their moved chord points."""
     rows = np.flatnonzero(arc)
     na = rows.size

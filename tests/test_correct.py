@@ -163,7 +163,7 @@ def test_modal_omission_incremental_and_inch():
 
 
 def test_clipping_limits_and_flags():
-    data, blocks, passes = _load(SAMPLES[0])
+    _, blocks, passes = _load(SAMPLES[0])
     n = passes.num_rows
     err = _errors(passes, np.full(n, 80.0), np.tile([0, 0, 1.0], (n, 1)))
     c = correct_once(blocks, passes, err, {"correct": {"max_move_um": 30.0}})
@@ -251,8 +251,9 @@ def test_ln_arcs_become_chords_on_the_refitted_circle():
     err = _errors(passes, np.full(len(mid), 10.0), np.column_stack([radial, np.zeros(len(mid))]))
     c = correct_once(blocks, passes, err, {"correct": {}})
     ln = write_ln_program(blocks, c, "ARC", chord_tol_mm=0.001).splitlines()
-    pts = np.array([[float(w[1:]) for w in s.split() if w[0] in "XY" and w[1] in "+-"] for s in ln if " LN " in s and "X" in s and "Y" in s])
-    nrm = np.array([[float(w[2:]) for w in s.split() if w[:2] in ("NX", "NY")] for s in ln if " LN " in s and "X" in s and "Y" in s])
+    full = [s.split() for s in ln if " LN " in s and " X" in s and " Y" in s]
+    pts = np.array([[float(w[1:]) for w in s if w[0] in "XY" and w[1] in "+-"] for s in full])
+    nrm = np.array([[float(w[2:]) for w in s if w[:2] in ("NX", "NY")] for s in full])
     r = np.linalg.norm(pts, axis=1)
     assert len(pts) > 50
     np.testing.assert_allclose(r, 9.990, atol=2e-4)                  # 10 µm left outside → radius −10 µm
@@ -262,7 +263,7 @@ def test_ln_arcs_become_chords_on_the_refitted_circle():
 
 
 def test_ln_and_comp_table():
-    data, blocks, passes = _load(SAMPLES[1])
+    _, blocks, passes = _load(SAMPLES[1])
     err = _random_errors(passes, 5)
     q = np.random.default_rng(0).uniform(0, 90, err.num_rows)
     err = err.append_column("contact_deg", pa.array(q))
@@ -365,7 +366,7 @@ def _closed_loop(text, vm, xs, ys, params, max_iter=4):
     """Correct ``text`` on the virtual machine; RMS machining error before and after, per round."""
     blocks0, _ = parse_program(text, "vm", "p")
     passes0 = split_blocks(blocks0, SPLIT)
-    target, gen0, cen0 = vm.surface(passes0, xs, ys, deflect=False)
+    target, _, cen0 = vm.surface(passes0, xs, ys, deflect=False)
     gx, gy = np.meshgrid(xs, ys)
     normal = cen0 - np.stack([gx, gy, target], -1)           # from the contact to the ball centre
     normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
@@ -461,7 +462,7 @@ def test_closed_loop_freeform_raster():
         rows.append(list(zip(xx, np.full_like(xx, y), f - R)))
     text = _program(rows)
     vm = VirtualMachine(centre_surface, R, allow_um=60.0)
-    rms, final, corrected = _closed_loop(text, vm, xs, ys, {"max_move_um": 100.0, "tol_um": 0.2})
+    rms, final, _ = _closed_loop(text, vm, xs, ys, {"max_move_um": 100.0, "tol_um": 0.2})
     print(f"\nfree-form raster: RMS error {rms[0]:.2f} µm before, rounds {['%.2f' % r for r in rms[1:]]},"
           f" written program {final:.2f} µm = {100 * final / rms[0]:.1f} % of before")
     assert rms[0] > 3.0
@@ -672,3 +673,33 @@ def test_closed_loop_cylinder_benchmark():
           f"max |error| at q 80–89°: {band(q_err[0], 80, 90):.1f} → {band(q_err[-1], 80, 90):.1f} µm")
     assert rms[0] > 10.0
     assert final <= 0.2 * rms[0]
+
+
+def test_stage_run_matches_schema():
+    import schemas
+    from stages import correct
+    _, blocks, passes = _load(SAMPLES[0])
+    out = correct.run({"blocks": blocks, "passes": passes, "errors": _random_errors(passes, 7)},
+                      {"correct": {"max_move_um": 50.0, "tol_um": 0.1, "max_iter": 5, "ln_normals": False,
+                                   "comp_table": False}})
+    table = schemas.check("corrected", out["corrected"])
+    motion = blocks.column("motion").to_numpy()
+    assert table.num_rows == int((motion <= 3).sum())
+    assert set(table.column("iteration").to_pylist()) == {1}
+    assert correct.NAME == "correct" and correct.INPUTS == ("blocks", "passes", "errors")
+    assert correct.OUTPUTS == ("corrected",) and correct.PARAMS == ("correct",)
+
+
+def test_incremental_program_random_moves_reverse_check():
+    rng = np.random.default_rng(4)
+    lines = [b"%", b"O0012", b"G90 G17 G21", b"T1 M6", b"S1000 M3", b"G0 X0.000 Y0.000 Z1.000", b"G1 Z0.000 F100", b"G91"]
+    lines += [b"X%.3f Y%.3f Z%.3f" % tuple(rng.uniform(-1, 1, 3)) for _ in range(200)]
+    lines += [b"G3 X1.000 Y1.000 I0.000 J1.000", b"G90 G0 Z20.000", b"M30", b"%", b""]
+    text = b"\n".join(lines)
+    blocks, _ = parse_program(text, "t", "p")
+    passes = split_blocks(blocks, SPLIT)
+    c = correct_once(blocks, passes, _random_errors(passes, 9), {"correct": {}})
+    out = write_program(text, blocks, c)
+    rep = reverse_check(out, blocks, c)
+    assert rep["ok"], rep
+    assert rep["max_dev_um"] <= 0.5 + 1e-6          # increments on the grid: no drift over 200 blocks
