@@ -207,6 +207,17 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
     clipped = size > max_move * (1 + 1e-12)
     total_um[clipped] *= (max_move / size[clipped])[:, None]
     new = orig + total_um / 1000.0
+    # a full circle (I J K with the end on the start) stays full: its end follows its start, else
+    # a tiny difference would turn it into a sliver arc
+    arc = (motion == 2) | (motion == 3)
+    start_now = _xyz(blk, ("x0_mm", "y0_mm", "z0_mm"))
+    full = arc & (np.linalg.norm(end - start_now, axis=1) < 1e-9)
+    full[0] = False
+    if full.any():
+        src = np.maximum.accumulate(np.where(~full, np.arange(nb), 0))
+        new[full] = new[src[full]]
+        total_um[full] = (new[full] - orig[full]) * 1000.0
+        clipped[full] = clipped[src[full]]
     change_um = np.linalg.norm((new - end) * 1000.0, axis=1)
 
     vlen = np.linalg.norm(vnormal, axis=1)
@@ -214,7 +225,6 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
     vn = np.where(np.isnan(vn) & ~np.isnan(prev_n), prev_n, vn)   # keep last round's normal
 
     centre = np.full((nb, 3), np.nan)
-    arc = (motion == 2) | (motion == 3)
     if arc.any():
         centre[arc] = _refit_arcs(blk, arc, end, new, max_move, passes, node_move, node_xyz,
                                   frame if n_pass else np.zeros(3))

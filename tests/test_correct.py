@@ -703,3 +703,26 @@ def test_incremental_program_random_moves_reverse_check():
     rep = reverse_check(out, blocks, c)
     assert rep["ok"], rep
     assert rep["max_dev_um"] <= 0.5 + 1e-6          # increments on the grid: no drift over 200 blocks
+
+
+def test_full_circle_and_long_r_arc_stay_what_they_are():
+    # a full circle (I J only) and a 270° R arc (negative R): after random moves the circle is still
+    # full and the R arc still spans more than 180° with its refitted centre
+    text = b"\n".join([b"%", b"O0013", b"G90 G21 G17", b"T1 M6", b"S1000 M3", b"G0 X10.000 Y0.000 Z0.000",
+                       b"G1 X10.000 Y0.000 F500", b"G3 I-10.000 J0.000", b"G1 X10.000 Y-1.000",
+                       b"G2 X0.000 Y-11.000 R-10.000", b"G1 X0.000 Y-12.000", b"M30", b"%", b""])
+    blocks, _ = parse_program(text, "t", "p")
+    passes = split_blocks(blocks, SPLIT)
+    for seed in range(5):
+        c = correct_once(blocks, passes, _random_errors(passes, 20 + seed, 20.0), {"correct": {}})
+        out = write_program(text, blocks, c)
+        assert reverse_check(out, blocks, c)["ok"]
+        body = out.split(b"\n")
+        circle = [ln for ln in body if ln.startswith(b"G3")][0]
+        assert b"X" not in circle and b"Y" not in circle          # still a full circle (no end words)
+        assert [ln for ln in body if ln.startswith(b"G2 ")][0].split(b"R")[1].startswith(b"-")
+        nb, _ = parse_program(out, "t", "p")
+        new_passes = split_blocks(nb, SPLIT)
+        length = lambda p: float(np.sum(np.sqrt(sum((p.column(a + "1_mm").to_numpy() - p.column(a + "0_mm").to_numpy()) ** 2  # noqa: E731
+                                                    for a in "xyz"))))
+        assert abs(length(new_passes) - length(passes)) < 0.5             # no arc collapsed (−63 mm) or flipped
