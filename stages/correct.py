@@ -48,6 +48,9 @@ PARAMS = ("correct",)
 DEFAULTS = {"max_move_um": 50.0, "tol_um": 0.1, "max_iter": 5, "ln_normals": False, "comp_table": False}
 _PLANE_AXES = {17: (0, 1, 2), 18: (2, 0, 1), 19: (1, 2, 0)}  # as stages.parse: (first, second, normal)
 _EPS_UM = 1e-9
+_PLANE_AXES_LUT = np.zeros((20, 3), np.int64)
+for _pl, _ax in _PLANE_AXES.items():
+    _PLANE_AXES_LUT[_pl] = _ax
 
 
 def _col(table: pa.Table, name: str, dtype=float) -> np.ndarray:
@@ -226,8 +229,57 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
 
     centre = np.full((nb, 3), np.nan)
     if arc.any():
-        centre[arc] = _refit_arcs(blk, arc, end, new, max_move, passes, node_move, node_xyz,
+        rows = np.flatnonzero(arc)
+        plane = _col(blk, "plane", np.int64)[rows]
+        ax = _PLANE_AXES_LUT[np.clip(plane, 0, 19)]
+
+        def refit():
+            c, free = _refit_arcs(blk, arc, end, new, max_move, passes, node_move, node_xyz,
                                   frame if n_pass else np.zeros(3))
+            centre[arc] = c
+            return free
+
+        for _ in range(2):
+            free = refit()
+            if not free.any():
+                break
+            # long arcs fitted freely: their end goes back onto the circle (radially, in the plane);
+            # the arcs after them are refitted to that end on the next pass
+            f, fa = rows[free], ax[free]
+            k = np.arange(f.size)
+            prev_f = np.vstack([new[:1], new[:-1]])[f]
+            c0, c1 = centre[f, fa[:, 0]], centre[f, fa[:, 1]]
+            rs = np.hypot(prev_f[k, fa[:, 0]] - c0, prev_f[k, fa[:, 1]] - c1)
+            da, db = new[f, fa[:, 0]] - c0, new[f, fa[:, 1]] - c1
+            re = np.maximum(np.hypot(da, db), 1e-12)
+            new[f, fa[:, 0]] = c0 + da * rs / re
+            new[f, fa[:, 1]] = c1 + db * rs / re
+        else:
+            refit()
+        # an arc whose sweep would still jump (a near-180° arc turning to the other side, ...) is
+        # translated with its start instead of refitted, and the arc after it refitted
+        ccw = motion[rows] == 3
+        old_c = _xyz(blk, ("cx_mm", "cy_mm", "cz_mm"))[rows]
+        prev_new = np.vstack([new[:1], new[:-1]])[rows]
+        s_old = _arc_sweep(start_now[rows], end[rows], old_c, plane, ccw)
+        s_new = _arc_sweep(prev_new, new[rows], centre[rows], plane, ccw)
+        jump = np.abs(s_new - s_old) > np.pi / 2
+        if jump.any():
+            j = rows[jump]
+            shift = prev_new[jump] - start_now[j]
+            new[j] = end[j] + shift
+            centre[j] = old_c[jump] + shift
+            follow = np.zeros(nb, bool)
+            follow[np.minimum(j + 1, nb - 1)] = True
+            follow &= arc
+            follow[j] = False
+            if follow.any():
+                keep_c = centre.copy()
+                refit()
+                centre[~follow] = keep_c[~follow]
+        total_um = (new - orig) * 1000.0
+        clipped |= np.linalg.norm(total_um, axis=1) > max_move * (1 + 1e-9)
+        change_um = np.linalg.norm((new - end) * 1000.0, axis=1)
 
     return pa.table({
         "program_id": program_id,
@@ -244,6 +296,20 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
         "iteration": np.full(nb, iteration, np.int32),
         "nx": vn[:, 0], "ny": vn[:, 1], "nz": vn[:, 2],
     }, schema=SCHEMA)
+
+
+def _arc_sweep(start, end, centre, plane, ccw):
+    """Signed sweep (rad) of arcs as the splitter reads them: CCW positive, same start/end = full."""
+    lut = np.zeros((20, 3), np.int64)
+    for pl, ax in _PLANE_AXES.items():
+        lut[pl] = ax
+    axes = lut[np.clip(plane, 0, 19)]
+    r = np.arange(start.shape[0])
+    a0, a1 = axes[:, 0], axes[:, 1]
+    th0 = np.arctan2(start[r, a1] - centre[r, a1], start[r, a0] - centre[r, a0])
+    th1 = np.arctan2(end[r, a1] - centre[r, a1], end[r, a0] - centre[r, a0])
+    sweep = np.where(ccw, np.mod(th1 - th0, 2 * np.pi), -np.mod(th0 - th1, 2 * np.pi))
+    return np.where(np.abs(sweep) < 1e-12, np.where(ccw, 2 * np.pi, -2 * np.pi), sweep)
 
 
 def _refit_arcs(blk, arc, end, new, max_move, passes, node_move, node_xyz, frame):
@@ -288,6 +354,12 @@ def _refit_arcs(blk, arc, end, new, max_move, passes, node_move, node_xyz, frame
     ba, bb = new_end[r, a0] - sa, new_end[r, a1] - sb
     chord = np.hypot(ba, bb)
     full = chord < 1e-9
+    # arcs of more than 180° whose chord is short against the radius: the bisector of the moved
+    # end points turns with every micrometre of move, so the centre is fitted freely (through the
+    # start, like a full circle) and the end is put back on the circle afterwards
+    r_old = np.hypot(old_start[r, a0] - old_centre[r, a0], old_start[r, a1] - old_centre[r, a1])
+    sweep_old = _arc_sweep(old_start, old_end, old_centre, plane, _col(blk, "motion", np.int64)[rows] == 3)
+    free = full | ((np.abs(sweep_old) > np.pi) & (chord < 0.5 * r_old))
     # fallback centre: the old centre carried by the mean in-plane move of the end points
     shift = (new_start - old_start + new_end - old_end) / 2
     fa = old_centre[r, a0] + shift[r, a0] - sa
@@ -303,26 +375,31 @@ def _refit_arcs(blk, arc, end, new, max_move, passes, node_move, node_xyz, frame
     r0 = sq - (ba[owner] * pa_ + bb[owner] * pb_)
     sgg = np.bincount(owner, g * g, na)
     sgr = np.bincount(owner, np.nan_to_num(g * r0), na)
-    use_fit = ~full & (sgg > 1e-18 * np.maximum(chord, 1e-9) ** 2)
+    use_fit = ~free & (sgg > 1e-18 * np.maximum(chord, 1e-9) ** 2)
     t = np.where(use_fit, sgr / np.where(use_fit, sgg, 1.0), t0)
-    ca = np.where(full, fa, ba / 2 + t * np.nan_to_num(ua))
-    cb = np.where(full, fb, bb / 2 + t * np.nan_to_num(ub))
-    if full.any():
-        # full circles: free centre c, |p|² − 2 c·p = 0 in least squares (2×2 normal equations)
-        sxx = np.bincount(owner, pa_ * pa_, na)
-        sxy = np.bincount(owner, pa_ * pb_, na)
-        syy = np.bincount(owner, pb_ * pb_, na)
-        rx = np.bincount(owner, pa_ * sq, na) / 2
-        ry = np.bincount(owner, pb_ * sq, na) / 2
+    ca = np.where(free, fa, ba / 2 + t * np.nan_to_num(ua))
+    cb = np.where(free, fb, bb / 2 + t * np.nan_to_num(ub))
+    if free.any():
+        # free centre c through the start: |p|² − 2 c·p = 0 in least squares over the chord points
+        # and the end point (2×2 normal equations per arc)
+        qa = np.concatenate([pa_, ba[free]])
+        qb = np.concatenate([pb_, bb[free]])
+        qo = np.concatenate([owner, np.flatnonzero(free)])
+        qq = qa ** 2 + qb ** 2
+        sxx = np.bincount(qo, qa * qa, na)
+        sxy = np.bincount(qo, qa * qb, na)
+        syy = np.bincount(qo, qb * qb, na)
+        rx = np.bincount(qo, qa * qq, na) / 2
+        ry = np.bincount(qo, qb * qq, na) / 2
         det = sxx * syy - sxy ** 2
-        ok = full & (det > 1e-12 * np.maximum(sxx + syy, 1e-30) ** 2)
+        ok = free & (det > 1e-12 * np.maximum(sxx + syy, 1e-30) ** 2)
         ca = np.where(ok, (syy * rx - sxy * ry) / np.where(ok, det, 1.0), ca)
         cb = np.where(ok, (sxx * ry - sxy * rx) / np.where(ok, det, 1.0), cb)
     out = np.empty((na, 3))
     out[r, a0] = sa + ca
     out[r, a1] = sb + cb
     out[r, an] = new_start[r, an]          # the parser's convention: centre at the start's height
-    return out
+    return out, free & ~full
 
 
 def apply_corrected(blocks: pa.Table, corrected: pa.Table) -> pa.Table:

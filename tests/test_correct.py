@@ -726,3 +726,21 @@ def test_full_circle_and_long_r_arc_stay_what_they_are():
         length = lambda p: float(np.sum(np.sqrt(sum((p.column(a + "1_mm").to_numpy() - p.column(a + "0_mm").to_numpy()) ** 2  # noqa: E731
                                                     for a in "xyz"))))
         assert abs(length(new_passes) - length(passes)) < 0.5             # no arc collapsed (−63 mm) or flipped
+
+
+def test_near_full_arc_does_not_flip():
+    # a 359.94° arc: its end lies 10 µm from its start; moves of that size must not turn it into
+    # a sliver (the splitter would read a 0.06° arc)
+    text = b"\n".join([b"%", b"O0014", b"G90 G21 G17", b"T1 M6", b"S1000 M3", b"G0 X10.000 Y0.000 Z0.000",
+                       b"G1 X10.000 Y0.000 F500", b"G3 X9.999 Y-0.010 I-10.000 J0.000",
+                       b"G3 X0.000 Y-10.000 I-9.999 J0.010", b"G1 X0.000 Y-12.000", b"M30", b"%", b""])
+    blocks, _ = parse_program(text, "t", "p")
+    passes = split_blocks(blocks, SPLIT)
+    length = lambda p: float(np.sum(np.sqrt(sum((p.column(a + "1_mm").to_numpy() - p.column(a + "0_mm").to_numpy()) ** 2  # noqa: E731
+                                                for a in "xyz"))))
+    for seed in range(8):
+        c = correct_once(blocks, passes, _random_errors(passes, 40 + seed, 25.0), {"correct": {}})
+        out = write_program(text, blocks, c)
+        assert reverse_check(out, blocks, c)["ok"]
+        nb, _ = parse_program(out, "t", "p")
+        assert abs(length(split_blocks(nb, SPLIT)) - length(passes)) < 0.5
