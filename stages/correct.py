@@ -23,7 +23,10 @@ m = −(e_i n_i + e_j n_j), which realises both errors exactly.
 - Arcs (G2/G3): the chord points of the arc are moved like vertices, then the arc is refitted by
   least squares: the centre lies on the perpendicular bisector of the moved end points (so the
   program stays consistent) at the position that best fits the moved chord points (algebraic
-  circle fit, linear in the one unknown). Full circles fit the centre freely.
+  circle fit, linear in the one unknown). Full circles keep their end on their start and fit the
+  centre freely; arcs over 180° with a short chord (whose bisector would swing with every
+  micrometre) fit the centre freely through the start and put the end back on the circle; an arc
+  whose sweep would still jump by more than 90° is translated with its start instead.
 
 Iteration (seed 003, DESIGN §7): :func:`correct_once` takes the *current* blocks (already corrected
 ones on later rounds) and the errors predicted for them, plus the previous ``corrected`` table; it
