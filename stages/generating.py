@@ -49,6 +49,8 @@ ID_W, ID_T1, ID_T2, ID_M = 0, 1, 2, 3
 STEEP_DEG = 60.0          # claim 6: re-render along the normal above this contact angle
 PASSES_PER_BATCH = 8
 N_LAYERS = 5
+# view correction steps: (window side in tool radii, zoom over px_per_mm)
+VIEW_STEPS = ((1.0, 2.0), (0.25, 8.0))
 _redo_when_lost = True     # claim 6 also when nothing survives from below (tests switch it off)
 N_PHI = 180
 
@@ -280,7 +282,10 @@ def generating(pg, shape, wp, renderer, px_per_mm, predict_idx, pred_tips, flute
                 near_px = cand & (margin_t2 <= np.quantile(margin_t2[cand], 0.02))
                 q, phi = _angles(M, near_px)
                 redo.append((k, max(q, STEEP_DEG), phi))
-        if redo:
+        # claim 6: look along the estimated normal, zoomed; zoom further where still nothing
+        for size, zoom in VIEW_STEPS:
+            if not redo:
+                break
             ks = np.array([r[0] for r in redo])
             ovs = []
             for k, q, phi in redo:
@@ -289,17 +294,22 @@ def generating(pg, shape, wp, renderer, px_per_mm, predict_idx, pred_tips, flute
                 upv = (np.cos(np.radians(fd[k])), np.sin(np.radians(fd[k])), 0.0)
                 if abs(np.dot(upv, nrm)) > 0.99:
                     upv = (0.0, 0.0, 1.0)
-                ovs.append(View(tuple(c), tuple(nrm), upv, R, R, 2 * px_per_mm, -R / 2, 2 * R))
+                ovs.append(View(tuple(c), tuple(nrm), upv, size * R, size * R, zoom * px_per_mm,
+                                -R / 2, 2 * R))
             n2 = len(ovs)
             scene = _layer_scene(ovs, pg, cutting, s_p[ks], f[ks], bounds, wp, mesh, tips[ks], fd[ks],
                                  coarse, gap[ks])
             imgs = renderer.render(ovs * N_LAYERS, scene)
+            still = []
             for r, k in enumerate(ks):
                 layers = [imgs[L * n2 + r] for L in range(N_LAYERS)]
                 surv, _ = _composite(layers, _own_path_strip(layers[3], shape, u[k], fd[k], f[k]))
                 if surv.any():
                     q, phi = _angles(layers[3], surv)
                     _store(gen, sl[k], ovs[r], layers[3], surv, q, phi, fd[k], "normal")
+                elif gen["view"][sl[k]] == "none":
+                    still.append(redo[r])
+            redo = still
     return gen, eng
 
 
