@@ -148,6 +148,7 @@ class Workflow(_Strict):
     correct: Correct = Correct()
     measurements: Optional[str] = None
     output: str = "runs/out"
+    until: Optional[str] = None  # stop after this stage (the CLI's --until overrides it)
 
     @model_validator(mode="after")
     def _lists_keyed(self):

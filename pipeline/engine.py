@@ -33,7 +33,8 @@ from pipeline.config import Workflow, WorkflowError, load_workflow, program_path
 from stages import InputError
 
 # Stage modules in execution order. A stage runs once per program partition.
-STAGE_MODULES = ["stages.parse", "stages.split"]
+STAGE_MODULES = ["stages.parse", "stages.split", "stages.cut_filter", "stages.angle_prune", "stages.generating",
+                 "stages.forces", "stages.deflection", "stages.errors", "stages.correct"]
 
 
 def load_stages() -> list:
@@ -88,6 +89,7 @@ class Run:
         self.cache = Cache(self.out / "cache")
         self.stages = load_stages()
         names = [s.NAME for s in self.stages]
+        until = until or self.wf.until
         if until is not None and until not in names:
             raise WorkflowError(f"--until {until!r}: not a stage; stages are {', '.join(names)}")
         if until is not None:
@@ -234,6 +236,16 @@ class Run:
             if client is not None:
                 _close(client)
         tables = self.materialize()
+        if "corrected" in tables:
+            from pipeline.nc_output import write_corrected_programs
+            for part in self.parts:
+                if part.failed or "correct" not in part.keys:
+                    continue
+                try:
+                    write_corrected_programs(self, part)
+                except Exception as e:  # one program's output must not cost the others
+                    failures.append({"program_id": part.program_id, "stage": "nc", "message": f"nc: {type(e).__name__}: {e}",
+                                     "traceback": traceback.format_exc()})
         report = None
         if "errors" in tables:
             from pipeline.report import write_report
@@ -375,7 +387,7 @@ def _connect(scheduler: Optional[str], workers: Optional[int]):
         return Client(scheduler, timeout="30s")
     n = workers or os.cpu_count() or 1
     cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                           dashboard_address=None, silence_logs=logging.ERROR)
+                           dashboard_address=None, silence_logs=logging.CRITICAL)
     return Client(cluster)
 
 

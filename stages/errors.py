@@ -36,7 +36,7 @@ from stages import cutting
 from stages.forces import list_values, match_passes, pick_entry, program_tool_number
 
 NAME = "errors"
-VERSION = "1"
+VERSION = "2"
 INPUTS = ("passes", "generating", "deflection")
 OUTPUTS = ("errors",)
 PARAMS = ("tool",)
@@ -175,6 +175,9 @@ def tip_z_nearest(passes: pa.Table, rows: np.ndarray, gen_xyz: np.ndarray) -> np
 def run(inputs: dict, params: dict) -> dict:
     from schemas.errors import SCHEMA
     passes, gen, defl = inputs["passes"], inputs["generating"], inputs["deflection"]
+    # a pass whose surface is removed again later has no generating point (view "none"): no error
+    found = np.isfinite(gen.column("contact_deg").to_numpy(zero_copy_only=False).astype(float))
+    gen = gen.filter(pa.array(found))
     if gen.num_rows == 0:
         return {"errors": SCHEMA.empty_table()}
     tool = pick_entry(params.get("tool"), program_tool_number(passes), "tool")

@@ -79,11 +79,12 @@ def write_program(data: bytes, blocks: pa.Table, corrected: pa.Table, *, source_
     wl = {k: v[on_row] for k, v in sc.items() if k != "line_start"}
     w_row = w_row[on_row]
     letter = wl["letter"]
-    # default decimals per letter (added words, integer-style words): the most common in the program
+    # default decimals per letter (added words, integer-style words): the most common in the program,
+    # but never coarser than 1 µm / 0.0001 in: a correction of a few µm must survive being written
     default = {}
     for ch in _AXES + _ARC + "R":
         d = wl["decimals"][(letter == ord(ch)) & wl["dot"] & (wl["decimals"] > 0)]
-        default[ch] = int(np.bincount(d).argmax()) if d.size else 3
+        default[ch] = max(int(np.bincount(d).argmax()) if d.size else 3, 3)
 
     def by_letter(chars):
         """(n, len(chars)) arrays: present, value, decimals, word index."""

@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 import duckdb
+import numpy as np
 import pandas as pd
 import pytest
 import yaml
@@ -28,6 +29,7 @@ WF = {
     "tool": {"type": "ball", "diameter_mm": 6, "flutes": 2},
     "material": {"name": "FCD550", "ktc": 2000, "krc": 700, "kac": 300},
     "output": "out",
+    "until": "split",  # engine behaviour is tested on parse/split; the full chain on a small box below
 }
 
 
@@ -238,3 +240,53 @@ def test_repo_workflow_is_valid():
     root = Path(__file__).resolve().parent.parent
     for wf in (root / "workflows").glob("*.yaml"):
         load_workflow(wf)
+
+
+BOX_PROGRAM = b"""%
+O2001 (BOX RASTER)
+G90 G17 G21
+T1 M6
+S6000 M3
+G0 X2. Y6. Z5.
+G1 Z-0.3 F500
+G1 X12. F1200
+G1 Y6.6
+G1 X2.
+G1 Y7.2
+G1 X12.
+G0 Z5.
+M5
+M30
+%
+"""
+
+
+def test_full_chain_on_a_box_writes_every_table_report_and_corrected_program(tmp_path):
+    """parse → … → correct through the engine: every table, the report, a corrected program whose
+    non-motion lines are the source's and that parses back to the same blocks."""
+    wf = dict(WF, until=None, stock={"box": [0, 0, -10, 20, 20, 0]}, render={"backend": "auto", "px_per_mm": 20},
+              prune={"min_contact_deg": 0}, split={"max_pass_mm": 3.0},
+              material=dict(WF["material"], kte=20, kre=15, kae=5),
+              machine={"frf": {"x": [{"fn_hz": 900, "zeta": 0.03, "k_n_per_um": 0.5}],
+                               "y": [{"fn_hz": 900, "zeta": 0.03, "k_n_per_um": 0.5}]}})
+    (tmp_path / "nc").mkdir()
+    (tmp_path / "nc" / "box.nc").write_bytes(BOX_PROGRAM)
+    (tmp_path / "wf.yaml").write_text(yaml.safe_dump(wf))
+    code, out = run_cli("run", str(tmp_path / "wf.yaml"), "--workers", "1", "-q")
+    assert code == 0, out
+    o = tmp_path / "out"
+    for t in ("programs", "passes", "cut_filter", "angle_prune", "generating", "engagement", "forces",
+              "deflection", "errors", "corrected"):
+        assert (o / "tables" / t / "box.parquet").is_file(), t
+    cf = read_table(o, "cut_filter")
+    passes = read_table(o, "passes")
+    assert not cf[passes.motion == 0].is_cutting.any() and cf.is_cutting.sum() >= 10
+    err = read_table(o, "errors")
+    assert len(err) >= 10 and np.isfinite(err.err_um).all() and (err.err_um.abs() < 50).all()
+    assert (o / "report" / "index.html").is_file() and (o / "report" / "error_map.png").stat().st_size > 10_000
+    src, new = BOX_PROGRAM.decode().splitlines(), (o / "nc" / "box.nc").read_text().splitlines()
+    assert len(new) == len(src) + 1 and new[2].startswith("(CORRECTED PROGRAM")
+    motion = {i for i, ln in enumerate(src) if ln.startswith(("G0", "G1"))}
+    assert [ln for i, ln in enumerate(src) if i not in motion] == [ln for i, ln in enumerate(new[:2] + new[3:]) if i not in motion]
+    corrected = read_table(o, "corrected")
+    assert corrected.move_um.max() > 0
