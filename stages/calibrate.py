@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stages import InputError
+from stages import InputError, read_numeric_csv
 from stages import cutting
 
 
@@ -53,24 +53,9 @@ def read_force_csv(path) -> tuple[np.ndarray, np.ndarray]:
     p = Path(path)
     if not p.is_file():
         raise InputError(f"{path}: no such force record")
-    lines = p.read_text().splitlines()
-    want = ("rotation_deg", "fx_n", "fy_n", "fz_n")
-    header = [h.strip().lower() for h in lines[0].split(",")] if lines else []
-    if any(w not in header for w in want):
-        raise InputError(f"{path}:1: header must name {','.join(want)}, got {lines[0] if lines else ''!r}")
-    cols = [header.index(w) for w in want]
-    rows = []
-    for n, line in enumerate(lines[1:], start=2):
-        if not line.strip() or line.lstrip().startswith("#"):
-            continue
-        parts = line.split(",")
-        try:
-            rows.append([float(parts[c]) for c in cols])
-        except (ValueError, IndexError):
-            raise InputError(f"{path}:{n}: expected numbers {','.join(want)}, got {line!r}") from None
-    if len(rows) < 6:
-        raise InputError(f"{path}: {len(rows)} samples; at least 6 are needed to fit 6 coefficients")
-    a = np.array(rows)
+    a = read_numeric_csv(p, ("rotation_deg", "fx_n", "fy_n", "fz_n"), "force record")
+    if len(a) < 6:
+        raise InputError(f"{path}: {len(a)} samples; at least 6 are needed to fit 6 coefficients")
     return a[:, 0], a[:, 1:4]
 
 

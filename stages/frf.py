@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stages import InputError
+from stages import InputError, read_numeric_csv
 
 FRF_COLUMNS = ("freq_hz", "xx_re", "xx_im", "yy_re", "yy_im")
 
@@ -52,31 +52,9 @@ def modal_compliance(freq_hz, modes) -> np.ndarray:
 
 @functools.lru_cache(maxsize=16)
 def _read_frf_table_cached(path: str, mtime: float):
-    p = Path(path)
-    try:
-        lines = p.read_text().splitlines()
-    except OSError as e:
-        raise InputError(f"machine.frf.table: cannot read {path}: {e}") from None
-    if not lines:
-        raise InputError(f"{path}:1: empty FRF table (expected header {','.join(FRF_COLUMNS)})")
-    header = [h.strip().lower() for h in lines[0].split(",")]
-    missing = [c for c in FRF_COLUMNS if c not in header]
-    if missing:
-        raise InputError(f"{path}:1: FRF table header lacks {missing} "
-                         f"(expected {','.join(FRF_COLUMNS)}, compliance in µm/N)")
-    cols = [header.index(c) for c in FRF_COLUMNS]
-    rows = []
-    for n, line in enumerate(lines[1:], start=2):
-        if not line.strip() or line.lstrip().startswith("#"):
-            continue
-        parts = line.split(",")
-        try:
-            rows.append([float(parts[c]) for c in cols])
-        except (ValueError, IndexError):
-            raise InputError(f"{path}:{n}: expected {len(header)} numbers, got {line!r}") from None
-    if len(rows) < 2:
+    a = read_numeric_csv(path, FRF_COLUMNS, "machine.frf.table")
+    if len(a) < 2:
         raise InputError(f"{path}: FRF table needs at least 2 rows")
-    a = np.array(rows)
     if np.any(np.diff(a[:, 0]) <= 0) or a[0, 0] < 0:
         raise InputError(f"{path}: freq_hz must be ≥ 0 and strictly ascending")
     return a
