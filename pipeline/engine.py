@@ -312,7 +312,7 @@ class Run:
         prog_dir = self.out / "tables" / "passes"
         if prog_dir.is_dir():
             n_passes = sum(pq.ParquetFile(p).metadata.num_rows for p in prog_dir.glob("*.parquet"))
-        failed_ids = sorted({f["program_id"] for f in failures})
+        failed_ids = sorted({f["program_id"] for f in failures if f["program_id"] is not None})
         return {
             "workflow": str(self.workflow_path), "name": self.wf.name, "output": str(self.out),
             "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "wall_s": round(wall_s, 3),
