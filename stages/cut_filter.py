@@ -1,36 +1,45 @@
 """Stage ``cut_filter`` (seed 000 claim 7, paras 0052-0054): which passes cut, and where.
 
-For every non-rapid pass the sweep of the pass T0, the sweeps of all earlier passes T1 that reach
-its neighbourhood, and the workpiece W are rendered from below in a window aligned with the pass
-(width: tool diameter, length: the pass plus the tool diameter, feed direction up). Pixels where
-T0 stays in front of W and T1 are cut by this pass. A pass without such a pixel is not cutting
-(air moves, passes inside already removed material); rapid moves (motion 0) never cut.
+One ordered scan per tile (``Renderer.scan``), from below: the stock W first, then the sweep of
+every pass in execution order with the depth test and depth writes, as the machine removes the
+material. A fragment of pass k passes the depth test where its sweep is in front of W and of the
+sweeps of all earlier passes T1 drawn before it: exactly claim 7's cutting region, for every pass
+in one render instead of one window per pass. Per pass the scan counts those pixels by position
+along the pass (``cut_px``), keeps their largest contact angle, and its final image is the
+claim-8 render (which pass leaves which pixel of the final surface), used by ``angle_prune``.
+A pass without a cut pixel is not cutting (air moves, passes inside already removed material);
+rapid moves (motion 0) never cut.
 
-The prediction point is the tool tip on the pass at the median position (along the pass) of the
-cut pixels: it is the position of an actual cut pixel, so it lies inside the cutting part even
-when the pass cuts only part of its length or several separate parts.
+The prediction point is the tool tip on the pass at the median position (along the pass, from
+the pixels' own positions projected on the line of corner centres) of the cut pixels, preferring
+the pass interior: it lies inside the cutting part even when the pass cuts only part of its
+length.
 
-T0 is drawn with a depth bias of ``tol`` (the polygonisation tolerance): a pass must cut deeper
-than the meshes' own error to count, so a pass that repeats an earlier one does not "cut" by
-round-off. Windows of many passes are rendered together (one atlas framebuffer per draw).
+Sweeps are drawn with a depth bias of ``tol`` (the polygonisation tolerance): a pass must cut
+deeper than the meshes' own error into the stock to count, and a pass that repeats an earlier
+one ties with it and does not count. Memory is bounded by the tile and the sweeps meshed per
+draw, never by the program.
 """
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import pyarrow as pa
 
 import schemas
 from stages import geometry as geo
-from stages.render import View, Scene, make_renderer
+from stages.render import View, make_renderer
 
 NAME = "cut_filter"
-VERSION = "1"
+VERSION = "2"
 INPUTS = ("passes", "stock")
 OUTPUTS = ("cut_filter",)
 PARAMS = ("tool", "render")
 
-ID_W, ID_T1, ID_T0 = 0, 1, 2
-WINDOWS_PER_BATCH = 64
+TILE_PX = 2048           # scan tile side (memory is bounded by the tile, not by the part)
+N_BINS = 20              # bins of the position along a pass for the prediction point
+PASSES_PER_DRAW = 2000   # sweeps meshed at a time (bounds the triangle arrays)
 
 
 def coarse_tolerance(px_per_mm: float) -> float:
@@ -55,97 +64,101 @@ def z_range(pg: geo.PassGeometry, wp: geo.Workpiece, shape: geo.ToolShape):
     return float(zs.min()) - 1.0, float(zs.max()) + shape.stickout_mm + 1.0
 
 
+def scan_tiles(pg, shape, wp, px_per_mm, which, zlo, zhi):
+    """From-below tiles (at most TILE_PX a side) over the sweeps of ``which`` within the stock."""
+    bounds = pg.sweep_bounds(shape)
+    if not len(which):
+        return []
+    lo = np.maximum(bounds[which, 0, :2].min(0), wp.bounds[0, :2])
+    hi = np.minimum(bounds[which, 1, :2].max(0), wp.bounds[1, :2])
+    if np.any(hi <= lo):
+        return []
+    tile_mm = TILE_PX / px_per_mm
+    nx, ny = (max(1, math.ceil((hi[k] - lo[k]) / tile_mm)) for k in (0, 1))
+    tiles = []
+    for ix in range(nx):
+        for iy in range(ny):
+            x0, y0 = lo[0] + ix * tile_mm, lo[1] + iy * tile_mm
+            w, h = min(tile_mm, hi[0] - x0), min(tile_mm, hi[1] - y0)
+            tiles.append(View((x0 + w / 2, y0 + h / 2, 0.0), (0, 0, 1.0), (0, 1.0, 0), w, h,
+                              px_per_mm, zlo, zhi))
+    return tiles
+
+
 def cut_filter(pg: geo.PassGeometry, shape: geo.ToolShape, wp: geo.Workpiece, renderer,
                px_per_mm: float, tol_mm: float | None = None):
-    """Claim-7 sub-render for every pass. Returns a dict of numpy columns."""
+    """Claim-7 and claim-8 renders for every pass, as one ordered scan per tile.
+
+    Returns a dict of numpy columns: is_cutting, cut_px, pred_x/y/z_mm, pred_t,
+    cut_max_contact_deg (largest contact angle over the pixels the pass cuts), surface_px and
+    surface_max_contact_deg (pixels of the final surface the pass leaves, their largest q).
+    """
     n = len(pg.pass_id)
     tol = coarse_tolerance(px_per_mm) if tol_mm is None else tol_mm
     mesh = geo.envelope_mesh(shape, tol)
-    out = dict(is_cutting=np.zeros(n, bool), cut_px=np.zeros(n, np.int64),
-               pred_x_mm=np.full(n, np.nan), pred_y_mm=np.full(n, np.nan),
-               pred_z_mm=np.full(n, np.nan), pred_t=np.full(n, np.nan),
-               cut_max_contact_deg=np.full(n, np.nan))
     zlo, zhi = z_range(pg, wp, shape)
-    R = shape.radius_mm
     bounds = pg.sweep_bounds(shape)
-    cutting_motion = pg.motion != 0
-    # only passes whose sweep reaches the stock can cut
-    reach = cutting_motion & geo.overlaps(bounds[:, 0], bounds[:, 1], wp.bounds[:1], wp.bounds[1:])[:, 0]
+    # only passes whose sweep reaches the stock can cut; rapid moves (motion 0) never cut
+    reach = pg.motion != 0
+    reach &= geo.overlaps(bounds[:, 0], bounds[:, 1], wp.bounds[:1], wp.bounds[1:])[:, 0]
     reach &= bounds[:, 0, 2] <= wp.bounds[1, 2]
     cand = np.nonzero(reach)[0]
-    margin = 2.0 / px_per_mm
-    wins = pass_windows(pg, shape, wp, px_per_mm, zlo, zhi, cand)
-    cand = np.array([i for i in cand if wins[i] is not None], np.int64)
-    for b0 in range(0, len(cand), WINDOWS_PER_BATCH):
-        idx = cand[b0:b0 + WINDOWS_PER_BATCH]
-        views = [wins[i] for i in idx]
-        m = len(views)
-        all_views = views + views                 # layer 0: W alone, layer 1: T1 + T0
-        lo_w, hi_w = geo.window_xy_bounds(views)
-        # earlier passes reaching each window (T1), and the pass itself (T0)
-        ov = geo.overlaps(lo_w, hi_w, bounds[:, 0], bounds[:, 1])
-        ov &= cutting_motion[None, :]
-        ov &= np.arange(n)[None, :] < idx[:, None]
-        win, j = np.nonzero(ov)
-        k = np.arange(m)
-        wb = (np.concatenate([lo_w, lo_w]), np.concatenate([hi_w, hi_w]))
-        scene = Scene.concat([
-            geo.workpiece_scene(wp, views, ID_W),
-            geo.segment_scene(mesh, pg.p0[j], pg.p1[j], win + m, np.full(len(j), ID_T1),
-                              (0, 0, 1.0), window_bounds=wb),
-            geo.segment_scene(mesh, pg.p0[idx], pg.p1[idx], k + m, np.full(m, ID_T0),
-                              (0, 0, 1.0), bias=tol, window_bounds=wb),
-        ])
-        images = renderer.render(all_views, scene)
-        for i, v, imw, imt in zip(idx, views, images[:m], images[m:]):
-            # cut: T0 in front of every earlier sweep and of the stock, inside the stock
-            cut = (imt.id == ID_T0) & (imw.id >= 0) & (imt.depth < imw.depth)
-            npx = int(cut.sum())
-            out["cut_px"][i] = npx
-            if npx == 0:
-                continue
-            out["is_cutting"][i] = True
-            rows, cols = np.nonzero(cut)
-            pts = v.pixel_points(rows, cols, imt.depth[cut] - tol)
-            # position along the pass of the tool axis nearest (in xy) to each cut pixel: the
-            # tool that cut a pixel stood over it (a 3-D projection would misplace descents)
-            d = pg.p1[i] - pg.p0[i]
-            dd = float(d[:2] @ d[:2])
-            t = (np.clip((pts[:, :2] - pg.p0[i, :2]) @ d[:2] / dd, 0, 1) if dd > 1e-12
-                 else np.full(len(pts), 0.5))
-            # median of the cut pixels: a position where this pass really cuts
-            tm = float(np.sort(t)[(len(t) - 1) // 2])
-            p = pg.p0[i] + tm * d
-            out["pred_t"][i] = tm
-            out["pred_x_mm"][i], out["pred_y_mm"][i], out["pred_z_mm"][i] = p
-            out["cut_max_contact_deg"][i] = float(np.max(imt.b[cut]))
+    counts = np.zeros((n, N_BINS), np.int64)
+    b_max = np.full(n, -np.inf)
+    surface_px = np.zeros(n, np.int64)
+    surface_q = np.full(n, -np.inf)
+    for view in scan_tiles(pg, shape, wp, px_per_mm, cand, zlo, zhi):
+        lo_w, hi_w = geo.window_xy_bounds([view])
+        inside = cand[geo.overlaps(lo_w, hi_w, bounds[cand, 0], bounds[cand, 1])[0]]
+
+        def batches(inside=inside):
+            for a in range(0, len(inside), PASSES_PER_DRAW):
+                k = inside[a:a + PASSES_PER_DRAW]
+                # sweeps are pushed back by the mesh tolerance: a pass must cut deeper than
+                # the polygonisation error into the stock to count (a repeat never counts)
+                yield geo.ordered_sweep_scene(mesh, pg.p0[k], pg.p1[k], k, bias=tol)
+
+        res = renderer.scan(view, geo.workpiece_scene(wp, [view], -2.0), batches(), n, N_BINS)
+        counts += res.counts
+        b_max = np.maximum(b_max, res.b_max)
+        fin = res.final
+        won = fin.id >= 0
+        surface_px += np.bincount(fin.id[won], minlength=n)
+        np.maximum.at(surface_q, fin.id[won], fin.b[won].astype(float))
+    cut_px = counts.sum(1)
+    out = dict(is_cutting=cut_px > 0, cut_px=cut_px, pred_x_mm=np.full(n, np.nan),
+               pred_y_mm=np.full(n, np.nan), pred_z_mm=np.full(n, np.nan), pred_t=np.full(n, np.nan),
+               cut_max_contact_deg=np.where(cut_px > 0, b_max, np.nan),
+               surface_px=surface_px,
+               surface_max_contact_deg=np.where(surface_px > 0, surface_q, np.nan))
+    cutting = np.nonzero(cut_px > 0)[0]
+    t = prediction_position(counts[cutting])
+    p = pg.p0[cutting] + t[:, None] * (pg.p1[cutting] - pg.p0[cutting])
+    out["pred_t"][cutting] = t
+    out["pred_x_mm"][cutting], out["pred_y_mm"][cutting], out["pred_z_mm"][cutting] = p.T
     return out
 
 
-def pass_windows(pg, shape, wp, px_per_mm, zlo, zhi, which):
-    """From-below window of each pass: tool diameter wide, along the pass, clipped to the stock.
+def prediction_position(hist):
+    """Median position along each pass of its cut pixels, preferring the pass interior.
 
-    Only pixels over the stock can be cut, so the window covers the part of the sweep's footprint
-    that lies over the stock's xy bounds. Returns a list (None where the footprint misses it).
+    ``hist`` (k, N_BINS): cut pixels per bin of the position along the pass (pixels of the end
+    copies count at 0 and 1). A point at a vertex lies where the path turns; the surface there
+    is a fan that the neighbouring passes share, so the median over the bins within the middle
+    60 % of the pass is used where they hold cut pixels (still a position where the pass cuts).
     """
-    R = shape.radius_mm
-    margin = 2.0 / px_per_mm
-    out = [None] * len(pg.p0)
-    corners = np.array([[x, y] for x in wp.bounds[:, 0] for y in wp.bounds[:, 1]])
-    for i in which:
-        d = (pg.p1[i] - pg.p0[i])[:2]
-        L = float(np.hypot(*d))
-        u = d / L if L > 1e-9 else np.array([0.0, 1.0])
-        v = np.array([-u[1], u[0]])
-        rel = corners - pg.p0[i, :2]
-        a0, a1 = max(-R, (rel @ u).min()) - margin, min(L + R, (rel @ u).max()) + margin
-        c0, c1 = max(-R, (rel @ v).min()) - margin, min(R, (rel @ v).max()) + margin
-        if a1 <= a0 or c1 <= c0:
-            continue
-        c = pg.p0[i, :2] + 0.5 * (a0 + a1) * u + 0.5 * (c0 + c1) * v
-        out[i] = View((c[0], c[1], 0.0), (0, 0, 1.0), (u[0], u[1], 0.0), c1 - c0, a1 - a0,
-                      px_per_mm, zlo, zhi)
-    return out
+    hist = np.asarray(hist, float).reshape(-1, N_BINS)
+    centre = (np.arange(N_BINS) + 0.5) / N_BINS
+    inner = (centre >= 0.2) & (centre <= 0.8)
+    has_inner = hist[:, inner].sum(1, keepdims=True) > 0
+    h = np.where(has_inner & inner[None], hist, np.where(has_inner, 0.0, hist))
+    c = np.cumsum(h, 1)
+    half = 0.5 * c[:, -1]
+    k = np.argmax(c >= half[:, None], axis=1)
+    rows = np.arange(len(h))
+    before = c[rows, k] - h[rows, k]
+    frac = (half - before) / np.maximum(h[rows, k], 1e-12)     # linear within the bin
+    return (k + np.clip(frac, 0.0, 1.0)) / N_BINS
 
 
 def run(inputs: dict, params: dict) -> dict:
@@ -166,5 +179,7 @@ def run(inputs: dict, params: dict) -> dict:
         "pred_z_mm": pa.array(res["pred_z_mm"]),
         "pred_t": pa.array(res["pred_t"]),
         "cut_max_contact_deg": pa.array(res["cut_max_contact_deg"]),
+        "surface_px": pa.array(res["surface_px"], pa.int32()),
+        "surface_max_contact_deg": pa.array(res["surface_max_contact_deg"]),
     })
     return {"cut_filter": schemas.check("cut_filter", table)}

@@ -271,7 +271,7 @@ def envelope_copies(mesh: EnvelopeMesh, tips, feed_deg=None, view_dir=None):
     return tris.reshape(-1, 3, 3), q, th, owner
 
 
-def sweep_bands(mesh: EnvelopeMesh, p0, p1):
+def sweep_bands(mesh: EnvelopeMesh, p0, p1, view_dir=None):
     """Faces swept by the silhouette edges of the envelope moving from ``p0`` to ``p1``.
 
     Together with :func:`envelope_copies` at ``p0`` and ``p1`` this renders the exact swept volume
@@ -288,6 +288,12 @@ def sweep_bands(mesh: EnvelopeMesh, p0, p1):
     sil = (sa * sb <= 0) & ~((np.abs(sa) <= eps) & (np.abs(sb) <= eps))
     sil &= (np.linalg.norm(u, axis=1) > 1e-12)[None]
     e, k = np.nonzero(sil)
+    if view_dir is not None:
+        # keep the bands a viewer looking along view_dir sees from outside: the band's outward
+        # normal is (nearly) the mean of the two faces that meet at the silhouette edge
+        nb = mesh.face_normals[mesh.edge_faces[e, 0]] + mesh.face_normals[mesh.edge_faces[e, 1]]
+        front = nb @ np.asarray(view_dir, float) < -1e-9
+        e, k = e[front], k[front]
     a0 = mesh.edges[e, 0] + p0[k]
     b0 = mesh.edges[e, 1] + p0[k]
     a1 = mesh.edges[e, 0] + p1[k]
@@ -315,6 +321,42 @@ def sweep_triangles(mesh: EnvelopeMesh, p0, p1, view_dir=None):
     owner = np.concatenate([o0, o1, ob])
     del k
     return tris, q, owner
+
+
+def ordered_sweep_scene(mesh: EnvelopeMesh, p0, p1, ident, view_dir=(0.0, 0.0, 1.0), bias=0.0):
+    """Sweeps of passes ``p0[k] -> p1[k]`` in the given (execution) order, for ``Renderer.scan``.
+
+    Only the faces a viewer looking along ``view_dir`` sees from outside are kept, and per pass
+    the silhouette bands come before the end copies: within one convex sweep each pixel then
+    passes the depth test once, so fragment counts are pixel counts. Attributes: id
+    ``ident[k]``, a = position along the pass (0 at p0, 1 at p1; beyond on the end copies),
+    b = contact angle q.
+    """
+    from stages.render import Scene
+    p0 = np.asarray(p0, float).reshape(-1, 3)
+    p1 = np.asarray(p1, float).reshape(-1, 3)
+    tb, qb, ob = sweep_bands(mesh, p0, p1, view_dir=view_dir)
+    t0, q0, _, o0 = envelope_copies(mesh, p0, view_dir=view_dir)
+    t1, q1, _, o1 = envelope_copies(mesh, p1, view_dir=view_dir)
+    tris = np.concatenate([tb, t0, t1])
+    q = np.concatenate([qb, q0, q1])
+    key = np.concatenate([ob * 3, o0 * 3 + 1, o1 * 3 + 2])
+    order = np.argsort(key, kind="stable")
+    owner = key[order] // 3
+    tris, q = tris[order], q[order]
+    # a: position along the pass of the point itself, projected in 3-D on the line of corner
+    # centres (linear in space, so exact under interpolation; the facets of a polyhedral
+    # silhouette would misplace a per-end 0/1 label by up to half a facet)
+    d = p1 - p0
+    dd = np.einsum("ij,ij->i", d, d)
+    c0 = p0 + (0.0, 0.0, mesh.shape.corner_mm)
+    a = np.einsum("tkj,tj->tk", tris - c0[owner, None, :], d[owner]) / np.where(dd > 1e-12, dd, 1.0)[owner, None]
+    a = np.where((dd > 1e-12)[owner, None], a, 0.5)
+    attrs = np.empty((len(order), 3, 3), np.float32)
+    attrs[:, :, 0] = np.asarray(ident, float)[owner, None]
+    attrs[:, :, 1] = a
+    attrs[:, :, 2] = q
+    return Scene(tris, attrs, np.full(len(order), float(bias)), np.zeros(len(order), np.int64))
 
 
 def sweep_lowest_z(shape: ToolShape, p0, p1, xy, n_t: int = 2001):

@@ -34,6 +34,7 @@ log = logging.getLogger(__name__)
 
 ATLAS_PX = 2048                 # default atlas side (grown up to the GL limit for large windows)
 TRI_BUDGET = 1_500_000          # triangles per draw (bounds the vertex buffer to ~200 MB)
+TIE_DEPTH = 1e-9                # depth (0..1 of the view's range) below which the scan sees a tie
 
 
 @dataclass(frozen=True)
@@ -204,6 +205,20 @@ def _to_atlas(views, scene, offsets):
     return pos, attrs, rect.astype(np.float64), scene.window[keep]
 
 
+@dataclass
+class ScanResult:
+    """Result of :meth:`Renderer.scan`.
+
+    counts : (n_ids, n_bins) fragments of each id that passed the depth test, by bin of ``a``.
+    b_max : (n_ids,) largest ``b`` among them (-inf where none passed).
+    final : the final image (id -1 where no counted triangle is the last passing fragment).
+    """
+
+    counts: np.ndarray
+    b_max: np.ndarray
+    final: Image
+
+
 class Renderer:
     """Render a batch of windows. Subclasses implement :meth:`_raster` only."""
 
@@ -253,6 +268,47 @@ class Renderer:
             i = j
         return images
 
+    def scan(self, view, stock: Scene, batches, n_ids: int, n_bins: int = 20) -> "ScanResult":
+        """Ordered depth scan of one window: claims 7 and 8 in one render.
+
+        The stock is drawn first (its top surface: the farthest stock face, so pixels off the
+        stock can never be cut), then the triangles of ``batches`` strictly in their order with
+        the depth test LESS and depth writes, as the machine removes material pass after pass.
+        A fragment passes where it is nearer than the stock and everything drawn before it: for
+        a sweep that is where the pass cuts. Per id (attribute 0, ``>= 0``; negative ids are
+        drawn but not counted) the scan counts passing fragments in ``n_bins`` bins of attribute
+        ``a`` (in [0, 1], e.g. the position along the pass) and keeps the largest attribute ``b``
+        (e.g. the contact angle). The returned image holds, per pixel, the last passing fragment:
+        the final surface and which id left it.
+
+        Memory is bounded by the window and the triangle budget per draw: ``batches`` is any
+        iterable of scenes (e.g. a generator over pass ranges), each split into draws.
+        """
+        h, w = view.shape
+        if max(h, w) > self.max_atlas_px():
+            raise ValueError(f"scan window {w}x{h} px larger than {self.max_atlas_px()}")
+        offs = [(0, 0, 0)]
+        counts = np.zeros((n_ids, n_bins), np.int64)
+        b_max = np.full(n_ids, -np.inf)
+        self._scan_start((h, w), n_ids, n_bins)
+        try:
+            pos, attrs, rect, _ = _to_atlas([view], stock, offs)
+            self._scan_stock(pos, attrs, rect)
+            for sc in batches:
+                for a in range(0, len(sc.tris), self.tri_budget):
+                    part = Scene(sc.tris[a:a + self.tri_budget], sc.attrs[a:a + self.tri_budget],
+                                 sc.bias[a:a + self.tri_budget],
+                                 np.zeros(min(self.tri_budget, len(sc.tris) - a), np.int64))
+                    pos, attrs, rect, _ = _to_atlas([view], part, offs)
+                    self._scan_draw(pos, attrs, rect, counts, b_max, n_bins)
+        finally:
+            color = self._scan_finish(counts, b_max)
+        empty = color[..., 0] < -0.5
+        depth = np.where(empty, np.inf, color[..., 3].astype(np.float64) + view.near_mm)
+        final = Image(view, depth, np.where(empty, -1, np.rint(color[..., 0])).astype(np.int64),
+                      color[..., 1].copy(), color[..., 2].copy())
+        return ScanResult(counts, b_max, final)
+
     def max_atlas_px(self):
         return 8192
 
@@ -273,81 +329,149 @@ class CPURenderer(Renderer):
     name = "cpu"
     frag_budget = 2_000_000
 
+    def _fragments(self, pos, rect, W):
+        """Fragments of the atlas triangles ``pos``: yields (tri, pix, depth, w1, w2) per chunk.
+
+        Pixel centres (i + 0.5) inside a triangle (edge functions, inclusive) and inside its
+        window rectangle, with depth in [0, 1]. Chunks hold at most ``frag_budget`` candidates.
+        """
+        if not len(pos):
+            return
+        x, y, z = pos[..., 0].astype(np.float64), pos[..., 1].astype(np.float64), pos[..., 2]
+        area2 = (x[:, 1] - x[:, 0]) * (y[:, 2] - y[:, 0]) - (x[:, 2] - x[:, 0]) * (y[:, 1] - y[:, 0])
+        ok = np.abs(area2) > 1e-12
+        # pixel centres (i + 0.5) covered by the bbox, clipped to the triangle's window
+        x_lo = np.maximum(np.ceil(x.min(1) - 0.5), rect[:, 0]).astype(np.int64)
+        x_hi = np.minimum(np.floor(x.max(1) - 0.5), rect[:, 2] - 1).astype(np.int64)
+        y_lo = np.maximum(np.ceil(y.min(1) - 0.5), rect[:, 1]).astype(np.int64)
+        y_hi = np.minimum(np.floor(y.max(1) - 0.5), rect[:, 3] - 1).astype(np.int64)
+        ok &= (x_hi >= x_lo) & (y_hi >= y_lo)
+        idx = np.nonzero(ok)[0]
+        bw = x_hi[idx] - x_lo[idx] + 1
+        bh = y_hi[idx] - y_lo[idx] + 1
+        kw = np.ceil(np.log2(bw)).astype(np.int64)
+        kh = np.ceil(np.log2(bh)).astype(np.int64)
+        key = kw * 64 + kh
+        # edge-function coefficients: w_k = a_k*px + b_k*py + c_k  (k = 1, 2)
+        inv = 1.0 / np.where(ok, area2, 1.0)
+        a1 = (y[:, 2] - y[:, 0]) * inv
+        b1 = -(x[:, 2] - x[:, 0]) * inv
+        a2 = -(y[:, 1] - y[:, 0]) * inv
+        b2 = (x[:, 1] - x[:, 0]) * inv
+        for kk in np.unique(key):
+            tri = idx[key == kk]
+            BW, BH = 1 << int(kk // 64), 1 << int(kk % 64)
+            per = max(1, self.frag_budget // (BW * BH))
+            ox = np.arange(BW)[None, None, :]
+            oy = np.arange(BH)[None, :, None]
+            for s in range(0, len(tri), per):
+                t = tri[s:s + per]
+                px = x_lo[t][:, None, None] + ox
+                py = y_lo[t][:, None, None] + oy
+                dx = px + 0.5 - x[t, 0][:, None, None]
+                dy = py + 0.5 - y[t, 0][:, None, None]
+                w1 = a1[t][:, None, None] * dx + b1[t][:, None, None] * dy
+                w2 = a2[t][:, None, None] * dx + b2[t][:, None, None] * dy
+                m = ((w1 >= -1e-9) & (w2 >= -1e-9) & (w1 + w2 <= 1 + 1e-9)
+                     & (px <= x_hi[t][:, None, None]) & (py <= y_hi[t][:, None, None]))
+                ti, iy, ix = np.nonzero(m)
+                if not len(ti):
+                    continue
+                w1f, w2f = w1[ti, iy, ix], w2[ti, iy, ix]
+                tt = t[ti]
+                d = z[tt, 0] + w1f * (z[tt, 1] - z[tt, 0]) + w2f * (z[tt, 2] - z[tt, 0])
+                pix = (y_lo[tt] + iy) * W + (x_lo[tt] + ix)
+                inside = (d >= 0) & (d <= 1)
+                yield tt[inside], pix[inside], d[inside], w1f[inside], w2f[inside]
+
     def _raster(self, pos, attrs, rect, size):
         H, W = size
         zbuf = np.full(H * W, np.inf)
         tbuf = np.full(H * W, -1, np.int64)
         w1buf = np.zeros(H * W)
         w2buf = np.zeros(H * W)
-        if len(pos):
-            x, y, z = pos[..., 0].astype(np.float64), pos[..., 1].astype(np.float64), pos[..., 2]
-            area2 = (x[:, 1] - x[:, 0]) * (y[:, 2] - y[:, 0]) - (x[:, 2] - x[:, 0]) * (y[:, 1] - y[:, 0])
-            ok = np.abs(area2) > 1e-12
-            # pixel centres (i + 0.5) covered by the bbox, clipped to the triangle's window
-            x_lo = np.maximum(np.ceil(x.min(1) - 0.5), rect[:, 0]).astype(np.int64)
-            x_hi = np.minimum(np.floor(x.max(1) - 0.5), rect[:, 2] - 1).astype(np.int64)
-            y_lo = np.maximum(np.ceil(y.min(1) - 0.5), rect[:, 1]).astype(np.int64)
-            y_hi = np.minimum(np.floor(y.max(1) - 0.5), rect[:, 3] - 1).astype(np.int64)
-            ok &= (x_hi >= x_lo) & (y_hi >= y_lo)
-            idx = np.nonzero(ok)[0]
-            bw = x_hi[idx] - x_lo[idx] + 1
-            bh = y_hi[idx] - y_lo[idx] + 1
-            kw = np.ceil(np.log2(bw)).astype(np.int64)
-            kh = np.ceil(np.log2(bh)).astype(np.int64)
-            key = kw * 64 + kh
-            # edge-function coefficients: w_k = a_k*px + b_k*py + c_k  (k = 1, 2)
-            inv = 1.0 / np.where(ok, area2, 1.0)
-            a1 = (y[:, 2] - y[:, 0]) * inv
-            b1 = -(x[:, 2] - x[:, 0]) * inv
-            a2 = -(y[:, 1] - y[:, 0]) * inv
-            b2 = (x[:, 1] - x[:, 0]) * inv
-            for kk in np.unique(key):
-                tri = idx[key == kk]
-                BW, BH = 1 << int(kk // 64), 1 << int(kk % 64)
-                per = max(1, self.frag_budget // (BW * BH))
-                ox = np.arange(BW)[None, None, :]
-                oy = np.arange(BH)[None, :, None]
-                for s in range(0, len(tri), per):
-                    t = tri[s:s + per]
-                    px = x_lo[t][:, None, None] + ox
-                    py = y_lo[t][:, None, None] + oy
-                    dx = px + 0.5 - x[t, 0][:, None, None]
-                    dy = py + 0.5 - y[t, 0][:, None, None]
-                    w1 = a1[t][:, None, None] * dx + b1[t][:, None, None] * dy
-                    w2 = a2[t][:, None, None] * dx + b2[t][:, None, None] * dy
-                    m = ((w1 >= -1e-9) & (w2 >= -1e-9) & (w1 + w2 <= 1 + 1e-9)
-                         & (px <= x_hi[t][:, None, None]) & (py <= y_hi[t][:, None, None]))
-                    ti, iy, ix = np.nonzero(m)
-                    if not len(ti):
-                        continue
-                    w1f, w2f = w1[ti, iy, ix], w2[ti, iy, ix]
-                    tt = t[ti]
-                    d = z[tt, 0] + w1f * (z[tt, 1] - z[tt, 0]) + w2f * (z[tt, 2] - z[tt, 0])
-                    pix = (y_lo[tt] + iy) * W + (x_lo[tt] + ix)
-                    inside = (d >= 0) & (d <= 1)
-                    # nearest fragment per pixel within the chunk, then merge with the buffer
-                    o = np.lexsort((tt, d, pix))
-                    o = o[inside[o]]
-                    if not len(o):
-                        continue
-                    ps = pix[o]
-                    first = np.ones(len(o), bool)
-                    first[1:] = ps[1:] != ps[:-1]
-                    o = o[first]
-                    ps = pix[o]
-                    win = d[o] < zbuf[ps]
-                    o, ps = o[win], ps[win]
-                    zbuf[ps] = d[o]
-                    tbuf[ps] = tt[o]
-                    w1buf[ps] = w1f[o]
-                    w2buf[ps] = w2f[o]
+        for tt, pix, d, w1f, w2f in self._fragments(pos, rect, W):
+            # nearest fragment per pixel within the chunk, then merge with the buffer
+            o = np.lexsort((tt, d, pix))
+            ps = pix[o]
+            first = np.ones(len(o), bool)
+            first[1:] = ps[1:] != ps[:-1]
+            o = o[first]
+            ps = pix[o]
+            win = d[o] < zbuf[ps]
+            o, ps = o[win], ps[win]
+            zbuf[ps] = d[o]
+            tbuf[ps] = tt[o]
+            w1buf[ps] = w1f[o]
+            w2buf[ps] = w2f[o]
+        return _interpolate(attrs, tbuf, w1buf, w2buf, H, W)
+
+    def _scan_start(self, size, n_ids, n_bins):
+        H, W = size
         color = np.zeros((H * W, 4), np.float32)
         color[:, 0] = -1
-        hit = np.nonzero(tbuf >= 0)[0]
-        t = tbuf[hit]
-        w1, w2 = w1buf[hit, None], w2buf[hit, None]
-        color[hit] = attrs[t, 0] * (1 - w1 - w2) + attrs[t, 1] * w1 + attrs[t, 2] * w2
-        return color.reshape(H, W, 4)
+        self._scan = dict(size=size, z=np.zeros(H * W), color=color)
+
+    def _scan_stock(self, pos, attrs, rect):
+        st = self._scan
+        W = st["size"][1]
+        z = st["z"]
+        for tt, pix, d, w1f, w2f in self._fragments(pos, rect, W):
+            np.maximum.at(z, pix, d)          # farthest stock face: the top of the material
+        # pixels without stock keep depth 0: nothing is in front of it, nothing is cut there
+
+    def _scan_draw(self, pos, attrs, rect, counts, b_max, n_bins):
+        st = self._scan
+        W = st["size"][1]
+        frags = list(self._fragments(pos, rect, W))
+        if not frags:
+            return
+        tt, pix, d, w1f, w2f = (np.concatenate(c) for c in zip(*frags))
+        # draw order = triangle order: per pixel, a fragment passes the depth test LESS when it
+        # is nearer than the buffer and than every earlier fragment of this batch there
+        o = np.lexsort((tt, pix))
+        tt, pix, d, w1f, w2f = tt[o], pix[o], d[o], w1f[o], w2f[o]
+        first = np.ones(len(pix), bool)
+        first[1:] = pix[1:] != pix[:-1]
+        seg = np.cumsum(first)
+        run = np.minimum.accumulate(d - 2.0 * seg) + 2.0 * seg     # running min per pixel
+        prev = np.empty_like(run)
+        prev[1:] = run[:-1]
+        prev[first] = np.inf
+        # ties (the same surface drawn again by other triangles) do not pass: float64 round-off
+        # between coplanar triangles is far below TIE_DEPTH (GL's fixed-point depth ties exactly)
+        ok = d < np.minimum(prev, st["z"][pix]) - TIE_DEPTH
+        tt, pix, d, w1f, w2f = tt[ok], pix[ok], d[ok], w1f[ok], w2f[ok]
+        if not len(tt):
+            return
+        a = attrs[tt, 0] * (1 - w1f - w2f)[:, None] + attrs[tt, 1] * w1f[:, None] + attrs[tt, 2] * w2f[:, None]
+        ident = np.rint(a[:, 0]).astype(np.int64)
+        cnt = ident >= 0
+        b = np.clip((a[:, 1] * n_bins).astype(np.int64), 0, n_bins - 1)
+        np.add.at(counts, (ident[cnt], b[cnt]), 1)
+        np.maximum.at(b_max, ident[cnt], a[cnt, 2])
+        # the last passing fragment of each pixel is its nearest: it is what the buffer keeps
+        last = np.ones(len(pix), bool)
+        last[:-1] = pix[1:] != pix[:-1]
+        ps = pix[last]
+        st["z"][ps] = d[last]
+        st["color"][ps] = a[last]
+
+    def _scan_finish(self, counts, b_max):
+        st, self._scan = self._scan, None
+        H, W = st["size"]
+        return st["color"].reshape(H, W, 4)
+
+
+def _interpolate(attrs, tbuf, w1buf, w2buf, H, W):
+    """Colour buffer (H, W, 4) from the winning triangle and barycentrics per pixel (-1: none)."""
+    color = np.zeros((H * W, 4), np.float32)
+    color[:, 0] = -1
+    hit = np.nonzero(tbuf >= 0)[0]
+    t = tbuf[hit]
+    w1, w2 = w1buf[hit, None], w2buf[hit, None]
+    color[hit] = attrs[t, 0] * (1 - w1 - w2) + attrs[t, 1] * w1 + attrs[t, 2] * w2
+    return color.reshape(H, W, 4)
 
 
 # ------------------------------------------------------------------------------------ moderngl
@@ -384,6 +508,34 @@ void main() {
 """
 
 
+_SCAN_VS = _VS.replace("#version 330", "#version 430")
+
+_SCAN_FS = """
+#version 430
+layout(early_fragment_tests) in;          // only fragments that pass the depth test run this
+layout(std430, binding = 0) buffer Counts { uint counts[]; };
+layout(std430, binding = 1) buffer BMax { int bmax[]; };
+uniform int n_bins;
+uniform int stock;
+in vec4 v_attr;
+out vec4 f_color;
+void main() {
+    if (stock == 1) {
+        f_color = vec4(-1.0, 0.0, 0.0, 0.0);
+        return;
+    }
+    int ident = int(floor(v_attr.x + 0.5));
+    if (ident >= 0) {
+        int bin = clamp(int(v_attr.y * float(n_bins)), 0, n_bins - 1);
+        atomicAdd(counts[ident * n_bins + bin], 1u);
+        atomicMax(bmax[ident], int(round(v_attr.z * 1000.0)));
+    }
+    f_color = v_attr;
+}
+"""
+B_SCALE = 1000.0                      # GL keeps b_max as an integer in thousandths
+
+
 def gl_context():
     """The process-wide headless EGL context (created on first use). Raises if none opens."""
     global _GL_CONTEXT, _GL_ERROR
@@ -409,6 +561,7 @@ class GLRenderer(Renderer):
         self._mgl = moderngl
         self.ctx = gl_context()
         self.prog = self.ctx.program(vertex_shader=_VS, fragment_shader=_FS)
+        self._scan_prog = None
         self._fbo, self._fbo_size = None, None
 
     def max_atlas_px(self):
@@ -430,7 +583,7 @@ class GLRenderer(Renderer):
             self._fbo_size = sz
         return self._fbo
 
-    def _raster(self, pos, attrs, rect, size):
+    def _begin(self, size, depth_clear):
         H, W = size
         mgl = self._mgl
         fbo = self._framebuffer(size)
@@ -438,24 +591,71 @@ class GLRenderer(Renderer):
         fbo.viewport = (0, 0, W, H)
         self.ctx.disable(mgl.CULL_FACE | mgl.BLEND)
         self.ctx.enable(mgl.DEPTH_TEST)
-        self.ctx.depth_func = "<"
         for i in range(4):
             self.ctx.enable_direct(0x3000 + i)          # GL_CLIP_DISTANCE0..3
-        fbo.clear(red=-1.0, green=0.0, blue=0.0, alpha=0.0, depth=1.0, viewport=(0, 0, W, H))
-        if len(pos):
-            n = len(pos)
-            data = np.empty((n, 3, 11), np.float32)
-            data[..., 0:3] = pos
-            data[..., 3:7] = attrs
-            data[..., 7:11] = rect[:, None, :]
-            vbo = self.ctx.buffer(data.tobytes())
-            vao = self.ctx.vertex_array(self.prog, [(vbo, "3f 4f 4f", "in_pos", "in_attr", "in_rect")])
-            self.prog["size"].value = (float(W), float(H))
-            vao.render(mgl.TRIANGLES)
-            vao.release()
-            vbo.release()
+        fbo.clear(red=-1.0, green=0.0, blue=0.0, alpha=0.0, depth=depth_clear, viewport=(0, 0, W, H))
+        return fbo
+
+    def _draw(self, prog, pos, attrs, rect, size):
+        if not len(pos):
+            return
+        H, W = size
+        n = len(pos)
+        data = np.empty((n, 3, 11), np.float32)
+        data[..., 0:3] = pos
+        data[..., 3:7] = attrs
+        data[..., 7:11] = rect[:, None, :]
+        vbo = self.ctx.buffer(data.tobytes())
+        vao = self.ctx.vertex_array(prog, [(vbo, "3f 4f 4f", "in_pos", "in_attr", "in_rect")])
+        prog["size"].value = (float(W), float(H))
+        vao.render(self._mgl.TRIANGLES)
+        vao.release()
+        vbo.release()
+
+    def _read(self, fbo, size):
+        H, W = size
         raw = fbo.read(viewport=(0, 0, W, H), components=4, dtype="f4")
         return np.frombuffer(raw, np.float32).reshape(H, W, 4).copy()
+
+    def _raster(self, pos, attrs, rect, size):
+        fbo = self._begin(size, 1.0)
+        self.ctx.depth_func = "<"
+        self._draw(self.prog, pos, attrs, rect, size)
+        return self._read(fbo, size)
+
+    def _scan_start(self, size, n_ids, n_bins):
+        if self._scan_prog is None:
+            self._scan_prog = self.ctx.program(vertex_shader=_SCAN_VS, fragment_shader=_SCAN_FS)
+        fbo = self._begin(size, 0.0)                  # off the stock nothing can pass
+        counts = self.ctx.buffer(reserve=max(4, 4 * n_ids * n_bins))
+        counts.clear()
+        bmax = self.ctx.buffer(np.full(max(1, n_ids), np.iinfo(np.int32).min, np.int32).tobytes())
+        counts.bind_to_storage_buffer(0)
+        bmax.bind_to_storage_buffer(1)
+        self._scan_prog["n_bins"].value = int(n_bins)
+        self._scan = dict(fbo=fbo, size=size, counts=counts, bmax=bmax, n=(n_ids, n_bins))
+
+    def _scan_stock(self, pos, attrs, rect):
+        self.ctx.depth_func = ">"                     # farthest stock face: top of the material
+        self._scan_prog["stock"].value = 1
+        self._draw(self._scan_prog, pos, attrs, rect, self._scan["size"])
+
+    def _scan_draw(self, pos, attrs, rect, counts, b_max, n_bins):
+        self.ctx.depth_func = "<"
+        self._scan_prog["stock"].value = 0
+        self._draw(self._scan_prog, pos, attrs, rect, self._scan["size"])
+
+    def _scan_finish(self, counts, b_max):
+        st, self._scan = self._scan, None
+        color = self._read(st["fbo"], st["size"])
+        n_ids, n_bins = st["n"]
+        if n_ids:
+            counts += np.frombuffer(st["counts"].read(), np.uint32)[:n_ids * n_bins].reshape(n_ids, n_bins)
+            bm = np.frombuffer(st["bmax"].read(), np.int32)[:n_ids]
+            b_max[:] = np.where(bm == np.iinfo(np.int32).min, -np.inf, bm / B_SCALE)
+        st["counts"].release()
+        st["bmax"].release()
+        return color
 
 
 _RENDERERS = {}
