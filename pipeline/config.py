@@ -123,6 +123,17 @@ class Correct(_Strict):
     comp_table: bool = False                 # also write a contact-angle compensation table
 
 
+class Measurements(_Strict):
+    """Measured points for the gap diagnosis (DESIGN §8): a CMM export or Parquet, with a column mapping."""
+
+    file: str
+    columns: dict[str, str] = {}                                 # our name (x_mm, nx, err_um, ...) → file's
+    length_unit: Literal["mm", "um", "inch"] = "mm"
+    deviation_unit: Optional[Literal["um", "mm", "inch"]] = None   # None: µm unless the header says
+    noise_um: Optional[float] = Field(None, gt=0)                 # probe noise σ if known (else estimated)
+    off_part_mm: float = Field(0.05, gt=0)                        # farther from every tool envelope = off the part
+
+
 class Box(_Strict):
     box: list[float]
 
@@ -146,7 +157,7 @@ class Workflow(_Strict):
     prune: Prune = Prune()
     split: Split = Split()
     correct: Correct = Correct()
-    measurements: Optional[str] = None
+    measurements: Union[str, Measurements, None] = None
     output: str = "runs/out"
     until: Optional[str] = None  # stop after this stage (the CLI's --until overrides it)
 
