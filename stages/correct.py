@@ -43,7 +43,7 @@ import pyarrow as pa
 from stages import InputError
 
 NAME = "correct"
-VERSION = "1"
+VERSION = "2"
 INPUTS = ("blocks", "passes", "errors")
 OUTPUTS = ("corrected",)
 PARAMS = ("correct",)
@@ -51,6 +51,10 @@ PARAMS = ("correct",)
 DEFAULTS = {"max_move_um": 50.0, "tol_um": 0.1, "max_iter": 5, "ln_normals": False, "comp_table": False}
 _PLANE_AXES = {17: (0, 1, 2), 18: (2, 0, 1), 19: (1, 2, 0)}  # as stages.parse: (first, second, normal)
 _EPS_UM = 1e-9
+# normals of the two passes at a vertex closer than this are one normal for the least-squares
+# refinement of the vertex move (see vertex_moves); about 4× the contact-angle accuracy of the
+# generating stage (≤ 0.5° RMS, issue 3)
+NORMAL_TOL_DEG = 2.0
 _PLANE_AXES_LUT = np.zeros((20, 3), np.int64)
 for _pl, _ax in _PLANE_AXES.items():
     _PLANE_AXES_LUT[_pl] = _ax
@@ -66,14 +70,31 @@ def _xyz(table: pa.Table, names) -> np.ndarray:
     return np.stack([_col(table, c) for c in names], axis=1)
 
 
-def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b):
-    """Para 0084 move of vertices shared by passes a and b, vectorised.
+def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True):
+    """Move of vertices shared by passes a and b (para 0084, refined by least squares), vectorised.
+
+    The para 0084 move points along E'a + E'b with the least-squares magnitude. That realises both
+    errors only when the normals are equal (with equal errors) or perpendicular; where the normals
+    of the two passes differ at an oblique angle (a floor pass meeting a wall pass, the fan of
+    normals at a concave corner), one magnitude cannot satisfy m·n_a = −e_a and m·n_b = −e_b, and
+    the part left over came back round after round of the iteration (the sample mould's pocket
+    corner). With ``refine`` the para 0084 move is completed by the damped least-squares move in
+    the plane of the two normals that realises the remaining part of both errors:
+
+        m = m_0084 + Nᵀ F(N Nᵀ) r,   N = [n_a; n_b],   r_k = −e_k − m_0084·n_k,
+
+    F(G) = Σ_modes v (μ / (μ² + μ_tol²)) vᵀ over the eigen pairs (μ, v) of G, μ_tol =
+    1 − cos(:data:`NORMAL_TOL_DEG`): a mode of clearly different normals is solved exactly (F → G⁻¹),
+    normals closer than the tolerance are treated as one (the difference of two nearly parallel
+    normals is within the accuracy of the predicted normals and would amplify error noise by
+    1/sin(angle)); there the para 0084 move (the mean) stays.
 
     Parameters
     ----------
     err_a, err_b : (v,) float, errors of the two passes, µm (positive = material left)
     n_a, n_b : (v, 3) float, unit surface normals (out of material)
     has_a, has_b : (v,) bool, whether the pass has a prediction (else it does not count)
+    refine : bool, add the least-squares refinement (False: the para 0084 move alone)
 
     Returns
     -------
@@ -94,7 +115,26 @@ def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b):
     den = wa * ca ** 2 + wb * cb ** 2
     ok &= den > 1e-12
     s = np.where(ok, num / np.where(ok, den, 1.0), 0.0)
-    return s[:, None] * d
+    m = s[:, None] * d
+    if not refine:
+        return m
+    # residual of both errors after the para 0084 move, solved in the plane of the two normals:
+    # G = N Nᵀ (2×2) in its eigenbasis, each mode μ taken with the filter μ²/(μ² + μ_tol²), so
+    # modes of well-separated normals are solved exactly and those of normals closer than
+    # NORMAL_TOL_DEG (μ = 1 − cos angle) fade out instead of being amplified by 1/sin(angle)
+    na, nb = n_a * wa[:, None], n_b * wb[:, None]
+    r = np.stack([-wa * err_a - np.einsum("ij,ij->i", m, na),
+                  -wb * err_b - np.einsum("ij,ij->i", m, nb)], 1)
+    g = np.empty((m.shape[0], 2, 2))
+    g[:, 0, 0] = np.einsum("ij,ij->i", na, na)
+    g[:, 1, 1] = np.einsum("ij,ij->i", nb, nb)
+    g[:, 0, 1] = g[:, 1, 0] = np.einsum("ij,ij->i", na, nb)
+    mu, vec = np.linalg.eigh(g)
+    mu_tol = 1.0 - np.cos(np.radians(NORMAL_TOL_DEG))
+    gain = np.where(mu > 1e-12, mu / (mu ** 2 + mu_tol ** 2), 0.0)        # f(μ)/μ
+    coef = np.einsum("vki,vk->vi", vec, r) * gain                           # per mode
+    ab = np.einsum("vki,vi->vk", vec, coef)                                 # (α, β)
+    return m + ab[:, :1] * na + ab[:, 1:] * nb
 
 
 def _errors_per_pass(passes: pa.Table, errors: pa.Table):

@@ -67,13 +67,49 @@ def test_oblique_normals_least_squares_magnitude():
     ni = np.array([1.0, 0, 0])
     nj = np.array([np.cos(np.pi / 3), 0, np.sin(np.pi / 3)])
     ei, ej = 10.0, 4.0
-    m = vertex_moves(np.array([ei]), ni[None], np.array([True]), np.array([ej]), nj[None], np.array([True]))[0]
+    m = vertex_moves(np.array([ei]), ni[None], np.array([True]), np.array([ej]), nj[None], np.array([True]),
+                     refine=False)[0]
     d = -(ei * ni + ej * nj)
     d /= np.linalg.norm(d)
     s = np.linspace(0, 40, 400001)
     cost = (s * (d @ ni) + ei) ** 2 + (s * (d @ nj) + ej) ** 2
     np.testing.assert_allclose(m, s[np.argmin(cost)] * d, atol=1e-3)
     np.testing.assert_allclose(m / np.linalg.norm(m), d, atol=1e-12)
+
+
+def test_refined_move_realises_both_errors_at_oblique_normals():
+    # para 0084's single magnitude leaves m·n_k + e_k ≠ 0 at oblique normals; the refinement in the
+    # plane of the two normals realises both (closed form: m = Nᵀ(N Nᵀ)⁻¹(−e), damped by λ ≈ 6e-4)
+    rng = np.random.default_rng(7)
+    ang = np.radians(rng.uniform(10, 170, 200))
+    axis_a = rng.normal(size=(200, 3))
+    axis_a /= np.linalg.norm(axis_a, axis=1)[:, None]
+    perp = np.cross(axis_a, rng.normal(size=(200, 3)))
+    perp /= np.linalg.norm(perp, axis=1)[:, None]
+    na, nb = axis_a, np.cos(ang)[:, None] * axis_a + np.sin(ang)[:, None] * perp
+    ea, eb = rng.normal(0, 10, 200), rng.normal(0, 10, 200)
+    yes = np.ones(200, bool)
+    m = vertex_moves(ea, na, yes, eb, nb, yes)
+    exact = np.empty_like(m)
+    for k in range(200):
+        N = np.stack([na[k], nb[k]])
+        exact[k] = N.T @ np.linalg.solve(N @ N.T, -np.array([ea[k], eb[k]]))
+    res = np.abs(np.stack([np.einsum("ij,ij->i", m, na) + ea, np.einsum("ij,ij->i", m, nb) + eb], 1))
+    # damping λ/(σ² + λ) with σ² ≥ 1 − cos 10° = 0.015: ≤ 4 % of the 0084 residual, which is ≤ |e|
+    assert res.max() <= 0.04 * np.abs(np.stack([ea, eb])).max()
+    rel = np.linalg.norm(m - exact, axis=1) / np.linalg.norm(exact, axis=1)
+    assert np.median(rel) < 0.01
+    p0084 = vertex_moves(ea, na, yes, eb, nb, yes, refine=False)
+    res0 = np.abs(np.stack([np.einsum("ij,ij->i", p0084, na) + ea, np.einsum("ij,ij->i", p0084, nb) + eb], 1))
+    assert np.median(res0) > 1.0 and np.median(res) < 0.05
+    # parallel normals: nothing to refine (the 0084 move is the least-squares mean); 0.5° apart:
+    # below NORMAL_TOL_DEG, the move stays near the mean instead of 1/sin(0.5°) = 115× amplification
+    par = vertex_moves(ea, na, yes, eb, na, yes)
+    np.testing.assert_allclose(par, -((ea + eb) / 2)[:, None] * na, atol=1e-9)
+    tiny = np.radians(0.5)
+    nb2 = np.cos(tiny) * na + np.sin(tiny) * perp
+    close = vertex_moves(ea, na, yes, eb, nb2, yes)
+    assert np.abs(np.linalg.norm(close, axis=1)).max() < 2 * np.abs(np.stack([ea, eb])).max()
 
 
 # ------------------------------------------------------------------------------------ writer
@@ -525,14 +561,18 @@ def _sample_centre_surface(passes, radius, x_range, y_range, step=0.05):
     return centre_surface
 
 
-@pytest.mark.parametrize("window,limit", [((14.0, 24.0, 34.0, 44.0), 0.2), ((60.0, 72.0, 36.0, 44.0), 0.3)])
-def test_closed_loop_sample_finishing_program(window, limit):
+@pytest.mark.parametrize("window", [(14.0, 24.0, 34.0, 44.0), (60.0, 72.0, 36.0, 44.0)])
+def test_closed_loop_sample_finishing_program(window):
     """The sample finishing program (OpenCAMLib raster, Ø10 ball) on the virtual machine, in a window.
 
-    The residual floor here is the cusp pattern shifted sideways by the tangential part of the
-    deflection (a ball displaced along the surface moves its 0.6 mm-stepover cusps), which a
-    correction along the normal (para 0084: the error is known along n only) cannot see; it weighs
-    more where the surface is flat (the second window: slopes below 40°, smaller errors).
+    The second window holds the foot of the pocket wall at x ≈ 73.2: every row's corner ball (two or
+    three vertices 25–40 µm apart) leaves a fan of its own sphere 2–3 mm wide on the floor, with
+    normals spread over ~40°, and the virtual machine pushes it sideways by up to 30 µm. The passes
+    meeting at those vertices have clearly different normals; the para 0084 move along E'i + E'j
+    with one magnitude cannot realise both errors there, and the iteration only slowly recovered
+    the rest (27.5 % after 4 rounds; 78 % of the remaining mean square in the 20 % of the window
+    covered by the fans). The least-squares refinement in the plane of the two normals
+    (stages.correct.vertex_moves) realises both. The bound is the issue's 20 %.
     """
     data = open(SAMPLES[1], "rb").read()
     blocks, _ = parse_program(data, SAMPLES[1], "p")
@@ -543,7 +583,7 @@ def test_closed_loop_sample_finishing_program(window, limit):
                                  {"max_move_um": 100.0, "tol_um": 0.2})
     print(f"\nsample {SAMPLES[1]} window x{x0:g}-{x1:g} y{y0:g}-{y1:g}: RMS error {rms[0]:.2f} µm before, rounds "
           f"{['%.2f' % r for r in rms[1:]]}, written program {final:.2f} µm = {100 * final / rms[0]:.1f} % of before")
-    assert final <= limit * rms[0]
+    assert final <= 0.2 * rms[0]
 
 
 def test_merged_pass_interior_and_untouched_neighbours():
