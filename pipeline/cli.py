@@ -118,6 +118,66 @@ def calibrate_forces(workflow, cuts, t, forces_on, out):
     click.echo(text)
 
 
+@main.command()
+@click.argument("workflow", type=click.Path(dir_okay=False))
+@click.option("--program", type=click.Path(dir_okay=False), help="Only this program of the workflow.")
+@click.option("--effect", "effects", multiple=True, metavar="NAME:key=value,...",
+              help="Unmodelled effect to switch on (runout, tool_contour, tool_wear, thermal_drift, force_scale, "
+                   "servo_corner, machine_geometry); repeatable.")
+@click.option("--noise-um", type=click.FloatRange(min=0), default=0.5, show_default=True, help="Probe noise σ.")
+@click.option("--seed", type=int, help="Noise seed.")
+@click.option("--plan", type=click.Path(exists=True, dir_okay=False),
+              help="Measurement plan (points + normals); default the workflow's measurements file, else a grid.")
+@click.option("--out", "out", required=True, type=click.Path(dir_okay=False), help="Measurement file (.csv or .parquet).")
+def simulate(workflow, program, effects, noise_um, seed, plan, out):
+    """Machine WORKFLOW on the virtual machine and write probed deviations (gap job)."""
+    from pipeline.gap import simulate as sim
+    try:
+        r = sim(workflow, program, list(effects), noise_um, seed, out, plan=plan)
+    except (WorkflowError, InputError) as e:
+        click.echo(f"error: {e}", err=True)
+        sys.exit(2)
+    click.echo(f"{r['points']} points of {', '.join(r['programs'])}, effects {r['effects'] or 'none'}, "
+               f"noise {noise_um} um -> {out}")
+
+
+@main.command()
+@click.argument("workflow", type=click.Path(dir_okay=False))
+@click.option("--measurements", required=True, type=click.Path(exists=True, dir_okay=False))
+@click.option("--out", "out", type=click.Path(file_okay=False), help="Output directory (default: workflow's `output`).")
+def diagnose(workflow, measurements, out):
+    """Sim-to-real gap: where, which unmodelled effect, how far it shrinks (held-out)."""
+    from pipeline.gap import diagnose_cmd
+    try:
+        s = diagnose_cmd(workflow, measurements, out)
+    except (WorkflowError, InputError) as e:
+        click.echo(f"error: {e}", err=True)
+        sys.exit(2)
+    click.echo(f"effect: {s['effect']} (all: {s['effects']}); params {json.dumps(s['params'])}")
+    click.echo(f"held-out RMS {s['rms_before_um']:.3f} -> {s['rms_after_um']:.3f} um (shrink {s['shrink']:.1%}); "
+               f"{len(s['where'])} regions beyond noise; {s['n_points']} points, {s['n_rejected']} rejected")
+
+
+@main.command("blind-check")
+@click.argument("workflow", type=click.Path(dir_okay=False))
+@click.option("--cases", type=click.IntRange(1), default=56, show_default=True)
+@click.option("--pairs", type=click.IntRange(0), default=0, show_default=True, help="Extra cases with two effects.")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--out", "out", type=click.Path(file_okay=False))
+def blind_check(workflow, cases, pairs, seed, out):
+    """Random effect (or none) per case on the virtual machine, diagnosed without telling it."""
+    from pipeline.gap import blind_check as bc
+    try:
+        s = bc(workflow, cases, seed, out, pairs=pairs,
+               progress=lambda i, c: click.echo(f"case {i}: truth {list(c['truth']) or ['none']} found {c['found'] or ['none']} "
+                                                f"shrink {c['shrink']:.2f}", err=True))
+    except (WorkflowError, InputError) as e:
+        click.echo(f"error: {e}", err=True)
+        sys.exit(2)
+    click.echo(json.dumps({k: s[k] for k in ("cases", "pairs", "top1_accuracy", "none_correct", "median_shrink",
+                                             "param_error", "pair_order_ok", "wall_s")}, indent=2))
+
+
 def _print_summary(s: dict) -> None:
     c = s["counts"]
     click.echo(f"{s['name']}: {c['programs']} programs ({c['programs_failed']} failed), {c['passes']} passes, "
