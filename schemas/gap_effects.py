@@ -1,11 +1,14 @@
 import pyarrow as pa
 
-# DESIGN §6 minimum columns for `gap_effects`; the stage that fills it may add more here.
+# DESIGN §6 `gap_effects`: one row per candidate effect, ranked on held-out blocks (stages/gap.py).
 SCHEMA = pa.schema([
     pa.field('effect', pa.string()),
-    pa.field('params', pa.string()),
+    pa.field('params', pa.string()),               # JSON of the fitted parameters (chosen effects)
     pa.field('rms_before_um', pa.float64()),
-    pa.field('rms_after_um', pa.float64()),
+    pa.field('rms_after_um', pa.float64()),        # held-out, this effect alone
     pa.field('explained', pa.float64()),
     pa.field('rank', pa.int32()),
+    pa.field('gain_sigma2', pa.float64()),         # held-out SSE improvement / noise variance
+    pa.field('threshold_sigma2', pa.float64()),    # χ² quantile it must beat
+    pa.field('chosen', pa.bool_()),
 ])

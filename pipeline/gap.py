@@ -1,0 +1,427 @@
+"""Gap job (issue 7, DESIGN §8): ``simulate``, ``diagnose`` and ``blind-check`` commands.
+
+The engine runs the workflow (through its cache) up to the tables a command needs: ``split`` for
+the virtual machine (parsed passes only), ``errors`` for the diagnosis (the prediction). Outputs:
+
+- ``<out>/tables/gap_points/<name>.parquet``, ``<out>/tables/gap_effects/<name>.parquet``
+- ``<out>/gap/summary.json`` (where, effect, effects, params, rms/p95/max before and after, shrink)
+- ``<out>/gap/index.html`` + ``residual_map.png`` (before / after) + ``rejected.csv``
+- ``<out>/blind/summary.json`` for the blind check.
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+import schemas
+from pipeline.config import Measurements, WorkflowError, load_workflow, resolve
+from stages import InputError
+
+
+# ------------------------------------------------------------------------------ run tables
+def run_tables(workflow: str, until: str, out: Optional[str] = None, workers: Optional[int] = 1,
+               scheduler: Optional[str] = None) -> tuple[dict, Path, object]:
+    """Run the workflow up to ``until`` (cached) and read its tables: {table: pa.Table}."""
+    from pipeline.engine import Run
+    r = Run(workflow, out=out, until=until)
+    summary = r.execute(scheduler=scheduler, workers=workers, progress=False)
+    failed = [f for f in summary["failures"] if f.get("stage") != "report"]
+    if failed:
+        raise InputError(f"{workflow}: the run failed before the gap job could use it: {failed[0]['message']}")
+    tabs = {}
+    for name in ("passes", "errors", "deflection"):
+        d = r.out / "tables" / name
+        files = sorted(d.glob("*.parquet")) if d.is_dir() else []
+        if files:
+            tabs[name] = pa.concat_tables([pq.read_table(f) for f in files], promote_options="default")
+    if "passes" not in tabs:
+        raise InputError(f"{workflow}: the run wrote no passes")
+    return tabs, r.out, r
+
+
+def _spec(wf, base) -> Measurements:
+    m = wf.measurements
+    if m is None:
+        return Measurements(file="")
+    if isinstance(m, str):
+        return Measurements(file=str(resolve(base, m)))
+    return m.model_copy(update={"file": str(resolve(base, m.file))})
+
+
+def _tool(wf, passes: pa.Table) -> dict:
+    t = None
+    if "tool" in passes.column_names:
+        vals = [v for v in passes.column("tool").to_pylist() if v is not None]
+        t = int(vals[0]) if vals else None
+    return wf.tool_for(t if isinstance(wf.tool, list) else None).model_dump()
+
+
+def read_points(path: str, spec: Measurements, require_deviation: bool = True):
+    from stages.measurements import read_measurements
+    return read_measurements(path, spec.columns, spec.length_unit, spec.deviation_unit,
+                             require_deviation=require_deviation)
+
+
+# ------------------------------------------------------------------------------ simulate
+def simulate(workflow: str, program: Optional[str], effects: list[str], noise_um: float, seed: Optional[int],
+             out_file: str, plan: Optional[str] = None, grid_mm: float = 0.5) -> dict:
+    """Machine the program(s) on the virtual machine with ``effects`` and write a measurement file."""
+    from stages.measurements import write_measurements
+    from stages.gap_geometry import nearest_pass
+    from stages.virtual_machine import VirtualMachine, grid_plan, parse_effect
+    wf, base = load_workflow(workflow)
+    eff = dict(parse_effect(e) for e in effects)
+    tabs, outdir, run = run_tables(workflow, "split")
+    passes = tabs["passes"]
+    progs = list(dict.fromkeys(passes.column("program_id").to_pylist()))
+    if program:
+        stem = Path(program).stem
+        if stem not in progs:
+            raise InputError(f"--program {program}: not a program of {workflow} (programs: {', '.join(progs)})")
+        progs = [stem]
+    spec = _spec(wf, base)
+    plan_pts = None
+    if plan or spec.file:
+        tab, rej, _ = read_points(plan or spec.file, spec, require_deviation=False)
+        plan_pts = tab
+    rng = np.random.default_rng(seed)
+    pieces = []
+    stock = run._static["stock"][0]
+    for prog in progs:
+        sub = passes.filter(pa.compute.equal(passes.column("program_id"), prog))
+        vm = VirtualMachine(sub, _tool(wf, sub), wf.material_for(None if not isinstance(wf.material, list) else
+                                                                  _tool(wf, sub).get("t")).model_dump(),
+                            wf.machine.model_dump(), stock)
+        if plan_pts is not None:
+            pts = np.stack([plan_pts.column(c).to_numpy() for c in ("x_mm", "y_mm", "z_mm")], 1)
+            nrm = np.stack([plan_pts.column(c).to_numpy() for c in ("nx", "ny", "nz")], 1)
+            ids = plan_pts.column("point_id").to_numpy()
+            if len(progs) > 1:   # each plan point goes to the program whose passes are nearest
+                _, _, d = nearest_pass(vm.path, pts + vm.R * nrm)
+                mine = d < 0.05
+                pts, nrm, ids = pts[mine], nrm[mine], ids[mine]
+        else:
+            pts, nrm = grid_plan(vm, grid_mm)
+            ids = np.arange(len(pts)) + sum(len(p) for p in pieces)
+        err = vm.probe(pts, nrm, eff, noise_um, rng)
+        row, u, _ = nearest_pass(vm.path, pts + vm.R * nrm)
+        t = vm.path.t0[row] + u * (vm.path.t1[row] - vm.path.t0[row])
+        pieces.append(pa.table({"point_id": pa.array(ids.astype(np.int64)), "x_mm": pts[:, 0], "y_mm": pts[:, 1],
+                                "z_mm": pts[:, 2], "nx": nrm[:, 0], "ny": nrm[:, 1], "nz": nrm[:, 2],
+                                "err_um": err, "t_s": t}))
+    tab = schemas.check("measurements", pa.concat_tables(pieces))
+    write_measurements(tab, out_file)
+    return {"points": tab.num_rows, "programs": progs, "effects": eff, "noise_um": noise_um, "out": out_file}
+
+
+# ------------------------------------------------------------------------------ diagnose
+def diagnose_points(F: dict, sigma: Optional[float], floor_um: float = 0.0) -> dict:
+    from stages.gap import diagnose, where
+    res = diagnose(F, sigma, floor_um)
+    res["where"] = where(F, F["residual_um"], res["sigma_um"], res["_blocks"])
+    res["where_after"] = where(F, res["_after"], res["sigma_um"], res["_blocks"])
+    return res
+
+
+def diagnose_cmd(workflow: str, measurements: str, out: Optional[str] = None) -> dict:
+    from stages.gap import associate, gap_effects_table, gap_points_table
+    t0 = time.perf_counter()
+    wf, base = load_workflow(workflow)
+    spec = _spec(wf, base)
+    tabs, outdir, _ = run_tables(workflow, "errors")
+    outdir = Path(out) if out else outdir
+    meas, rej, _ = read_points(measurements, spec)
+    tool = _tool(wf, tabs["passes"])
+    F, rej2 = associate(meas, tabs["passes"], tabs.get("errors"), tool, spec.off_part_mm, tabs.get("deflection"))
+    t1 = time.perf_counter()
+    res = diagnose_points(F, spec.noise_um)
+    t2 = time.perf_counter()
+    name = Path(measurements).stem
+    gdir = outdir / "gap"
+    gdir.mkdir(parents=True, exist_ok=True)
+    for tname, tab in (("gap_points", gap_points_table(F, res["_after"])), ("gap_effects", gap_effects_table(res))):
+        d = outdir / "tables" / tname
+        d.mkdir(parents=True, exist_ok=True)
+        tab = schemas.check(tname, tab)
+        pq.write_table(tab, d / f"{name}.parquet.tmp")
+        (d / f"{name}.parquet.tmp").replace(d / f"{name}.parquet")
+    rejected = [(i, ln, why) for i, ln, why in rej.rows] + [(i, None, why) for i, why in rej2]
+    with open(gdir / "rejected.csv", "w") as f:
+        f.write("point_id,line,reason\n")
+        for i, ln, why in rejected:
+            f.write(f"{i},{'' if ln is None else ln},\"{why}\"\n")
+    summary = public_summary(res)
+    summary.update({"measurements": str(measurements), "n_rejected": len(rejected),
+                    "timing_s": {"associate": t1 - t0, "diagnose": t2 - t1}})
+    (gdir / "summary.json").write_text(json.dumps(summary, indent=2))
+    report(gdir, F, res, summary)
+    return summary
+
+
+def public_summary(res: dict) -> dict:
+    keys = ("effect", "effects", "params", "where", "where_after", "sigma_um", "n_points", "n_blocks",
+            "rms_before_um", "rms_after_um", "p95_before_um", "p95_after_um", "max_before_um", "max_after_um",
+            "shrink", "ranking")
+    out = {k: res[k] for k in keys if k in res}
+    out["held_out"] = "K-fold over spatial blocks: every point predicted by the fit without its block"
+    out["model_update"] = model_update(res["params"])
+    return out
+
+
+def model_update(params: dict) -> dict:
+    """How each chosen effect enters the simulation model (tool, machine, force model)."""
+    up = {}
+    for name, p in params.items():
+        if name == "runout":
+            up["tool.runout_um"] = p["e_um"]
+        elif name == "force_scale":
+            up["material.*"] = f"multiply ktc, krc, kac, kte, kre, kae by {p['scale']:.4g}"
+        elif name == "tool_contour":
+            up["tool.profile"] = (f"add {p['a_um']:.3g}·exp(-((q-{p['q0_deg']:.3g})/{p['width_deg']:.3g})²/2) µm "
+                                  f"to error_um (seed 002 second error)")
+        elif name == "tool_wear":
+            up["tool.wear_um_per_m"] = p["rate_um_per_m"]
+        else:
+            up[f"machine.{name}"] = p
+    return up
+
+
+def report(gdir: Path, F: dict, res: dict, summary: dict) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    before, after = F["residual_um"], res["_after"]
+    lim = float(np.percentile(np.abs(before), 99)) or 1.0
+    fig, ax = plt.subplots(1, 3, figsize=(15, 4.5))
+    for a, v, title in ((ax[0], before, "residual before (µm)"), (ax[1], after, "residual after, held-out (µm)")):
+        sc = a.scatter(F["x_mm"], F["y_mm"], c=v, s=6, cmap="coolwarm", vmin=-lim, vmax=lim)
+        a.set_aspect("equal"); a.set_title(title); a.set_xlabel("x mm"); a.set_ylabel("y mm")
+        fig.colorbar(sc, ax=a)
+    ax[2].scatter(F["t_s"], before, s=3, label="before", alpha=0.6)
+    ax[2].scatter(F["t_s"], after, s=3, label="after", alpha=0.6)
+    ax[2].set_xlabel("machining time s"); ax[2].set_ylabel("residual µm"); ax[2].legend()
+    fig.tight_layout()
+    fig.savefig(gdir / "residual_map.png", dpi=90)
+    plt.close(fig)
+    rows = "".join(f"<tr><td>{r['rank']}</td><td>{r['effect']}</td><td>{r['rms_after_um']:.3f}</td>"
+                   f"<td>{r['gain_sigma2']:.1f}</td><td>{r['threshold_sigma2']:.1f}</td>"
+                   f"<td>{'yes' if r['significant'] else 'no'}</td></tr>" for r in summary["ranking"])
+    wh = "".join(f"<tr><td>{w['bbox_mm']}</td><td>{w['pass_range']}</td><td>{w['contact_deg']}</td>"
+                 f"<td>{w['time_s']}</td><td>{w['mean_residual_um']:.2f}</td><td>{w['ci95_um']}</td></tr>"
+                 for w in summary["where"])
+    html = f"""<html><head><meta charset="utf-8"><title>Gap diagnosis</title></head><body>
+<h1>Sim-to-real gap</h1>
+<p>Effect: <b>{summary['effect']}</b>; all added: {summary['effects']}; parameters: <code>{json.dumps(summary['params'])}</code></p>
+<p>Held-out residual: RMS {summary['rms_before_um']:.3f} → {summary['rms_after_um']:.3f} µm (shrink {summary['shrink']:.1%}),
+P95 {summary['p95_before_um']:.3f} → {summary['p95_after_um']:.3f} µm, max {summary['max_before_um']:.3f} → {summary['max_after_um']:.3f} µm;
+noise σ {summary['sigma_um']:.3f} µm; {summary['n_points']} points, {summary['n_rejected']} rejected (rejected.csv).</p>
+<img src="residual_map.png">
+<h2>Effect ranking (first round, held-out blocks)</h2>
+<table border=1><tr><th>rank</th><th>effect</th><th>RMS after µm</th><th>gain / σ²</th><th>threshold</th><th>significant</th></tr>{rows}</table>
+<h2>Where (blocks with mean residual beyond the noise)</h2>
+<table border=1><tr><th>bbox mm</th><th>passes</th><th>q deg</th><th>time s</th><th>mean µm</th><th>95 %</th></tr>{wh}</table>
+</body></html>"""
+    (gdir / "index.html").write_text(html)
+
+
+# ------------------------------------------------------------------------------ blind check
+def random_case(rng, kind: str, ctx: dict) -> dict:
+    """Random physical parameters for one effect, within ranges set by the part (duration, size)."""
+    T, qmax = ctx["duration_s"], ctx["q_max_deg"]
+    sgn = lambda: rng.choice([-1.0, 1.0])
+    if kind == "runout":
+        # eccentricity within 45° of a flute (else with 2 flutes no flute stands out): e_eff ≥ e·cos 45°
+        return {"e_um": rng.uniform(3, 12), "phase_deg": rng.uniform(-45, 45) + 360.0 / _FLUTES["n"] * rng.integers(_FLUTES["n"])}
+    if kind == "tool_contour":
+        return {"a_um": sgn() * rng.uniform(3, 10), "q0_deg": rng.uniform(0.2 * qmax, 0.8 * qmax),
+                "width_deg": rng.uniform(5, 15)}
+    if kind == "tool_wear":
+        return {"rate_um_per_m": rng.uniform(4, 12) * 1000.0 / max(ctx["cut_len_mm"], 1e-6)}   # 4-12 µm at the end
+    if kind == "thermal_drift":
+        a = rng.normal(size=3)
+        a = a / np.linalg.norm(a) * rng.uniform(5, 15)
+        return {"ax_um": a[0], "ay_um": a[1], "az_um": a[2], "tau_s": T * rng.uniform(0.1, 1.0)}
+    if kind == "force_scale":
+        return {"scale": float(np.exp(rng.uniform(math.log(1.5), math.log(2.5)) * sgn()))}
+    if kind == "servo_corner":
+        return {"a_um": sgn() * rng.uniform(5, 15), "lambda_mm": rng.uniform(0.3, 1.5)}
+    if kind == "machine_geometry":
+        v = rng.normal(size=6)
+        v = v / np.linalg.norm(v) * rng.uniform(1.0, 2.5) * 5.0 / max(ctx["size_mm"], 1e-6)   # 5-12 µm over the part
+        return dict(zip(("sx", "sy", "sz", "exy", "exz", "eyz"), map(float, v)))
+    raise ValueError(kind)
+
+
+def param_error(kind: str, true: dict, fit: dict) -> float:
+    """Relative error of the fitted parameters (vector norm for multi-parameter effects)."""
+    if kind == "runout":
+        return abs(fit["e_um"] - _runout_eff(true)) / _runout_eff(true)
+    if kind == "force_scale":
+        return abs(fit["scale"] - true["scale"]) / abs(true["scale"] - 1.0)
+    if kind == "tool_contour":
+        return max(abs(fit["a_um"] - true["a_um"]) / abs(true["a_um"]),
+                   abs(fit["q0_deg"] - true["q0_deg"]) / true["width_deg"],
+                   abs(fit["width_deg"] - true["width_deg"]) / true["width_deg"])
+    if kind == "thermal_drift":
+        a = np.array([true[k] for k in ("ax_um", "ay_um", "az_um")])
+        b = np.array([fit[k] for k in ("ax_um", "ay_um", "az_um")])
+        return max(float(np.linalg.norm(a - b) / np.linalg.norm(a)), abs(fit["tau_s"] - true["tau_s"]) / true["tau_s"])
+    keys = list(true)
+    a = np.array([true[k] for k in keys])
+    b = np.array([fit[k] for k in keys])
+    return float(np.linalg.norm(a - b) / np.linalg.norm(a))
+
+
+_FLUTES = {"n": 2}
+
+
+def _runout_eff(true: dict) -> float:
+    """The largest flute offset e·max_j cos(2πj/N + phase): what the surface shows."""
+    n = _FLUTES["n"]
+    return true["e_um"] * max(math.cos(2 * math.pi * j / n + math.radians(true["phase_deg"])) for j in range(n))
+
+
+def blind_check(workflow: str, cases: int, seed: int, out: Optional[str] = None, noise=(0.3, 1.0),
+                pairs: int = 0, progress=None) -> dict:
+    """Random effect (or none) per case, simulated on the virtual machine, diagnosed blind."""
+    from stages.gap import associate
+    from stages.virtual_machine import EFFECTS, VirtualMachine
+    wf, base = load_workflow(workflow)
+    spec = _spec(wf, base)
+    tabs, outdir, run = run_tables(workflow, "errors")
+    outdir = Path(out) if out else outdir
+    passes = tabs["passes"]
+    progs = list(dict.fromkeys(passes.column("program_id").to_pylist()))
+    prog = progs[0]
+    sub = passes.filter(pa.compute.equal(passes.column("program_id"), prog))
+    tool = _tool(wf, sub)
+    _FLUTES["n"] = int(tool["flutes"])
+    vm = VirtualMachine(sub, tool, wf.material_for(tool.get("t") if isinstance(wf.material, list) else None).model_dump(),
+                        wf.machine.model_dump(), run._static["stock"][0])
+    if spec.file:
+        plan, _, _ = read_points(spec.file, spec, require_deviation=False)
+        pts = np.stack([plan.column(c).to_numpy() for c in ("x_mm", "y_mm", "z_mm")], 1)
+        nrm = np.stack([plan.column(c).to_numpy() for c in ("nx", "ny", "nz")], 1)
+    else:
+        from stages.virtual_machine import grid_plan
+        pts, nrm = grid_plan(vm)
+    summary = blind_cases(vm, sub, tabs.get("errors"), tool, pts, nrm, cases, seed, noise=noise, pairs=pairs,
+                          off_part_mm=spec.off_part_mm, progress=progress, deflection=tabs.get("deflection"))
+    summary["workflow"] = workflow
+    bdir = outdir / "blind"
+    bdir.mkdir(parents=True, exist_ok=True)
+    (bdir / "summary.json").write_text(json.dumps(summary, indent=2, default=_jsonable))
+    return summary
+
+
+def blind_cases(vm, passes: pa.Table, errors: Optional[pa.Table], tool: dict, pts: np.ndarray, nrm: np.ndarray,
+                cases: int, seed: int, noise=(0.3, 1.0), pairs: int = 0, off_part_mm: float = 0.05,
+                kinds: Optional[list] = None, progress=None, deflection: Optional[pa.Table] = None) -> dict:
+    """The blind check on one program: ``cases`` single-effect (or none) cases + ``pairs`` two-effect cases."""
+    from stages.gap import associate
+    from stages.virtual_machine import EFFECTS
+    _FLUTES["n"] = int(tool["flutes"])
+    ids = np.arange(len(pts))
+    p = vm.path
+    q = np.degrees(np.arccos(np.clip(nrm[:, 2], -1, 1)))
+    ctx = {"duration_s": float(p.t1.max()), "q_max_deg": float(np.percentile(q, 98)),
+           "cut_len_mm": float(p.L0[-1] + p.length[-1]),
+           "size_mm": float(np.ptp(pts, axis=0).max())}
+    kinds = kinds or ["none"] + list(EFFECTS)
+    rng = np.random.default_rng(seed)
+    plan_cases = [[kinds[i % len(kinds)]] for i in range(cases)]
+    rng.shuffle(plan_cases)
+    for _ in range(pairs):
+        a, b = rng.choice([k for k in kinds if k != "none"], 2, replace=False)
+        plan_cases.append([str(a), str(b)])
+    results = []
+    t_start = time.perf_counter()
+    # reference part (no effect), as a shop calibrates on a test cut: the force-model scale s0 and
+    # the model's floor (residual RMS beyond the probe noise) that no catalogue effect explains
+    from stages.gap import apply_baseline, noise_sigma
+    ref_sigma = float(np.mean(noise))
+    err = vm.probe(pts, nrm, {}, ref_sigma, np.random.default_rng(seed + 7919))
+    F0, _ = associate(_meas_table(ids, pts, nrm, err), passes, errors, tool, off_part_mm, deflection)
+    d = F0["pred_deflection_um"]
+    s0 = float(1.0 + np.dot(d, F0["residual_um"]) / np.dot(d, d)) if np.dot(d, d) > 0 else 1.0
+    F0 = apply_baseline(F0, s0)
+    sig0 = noise_sigma(F0, F0["residual_um"])
+    floor = float(math.sqrt(max(np.mean(F0["residual_um"] ** 2) - sig0 ** 2, 0.0)))
+    calibration = {"force_scale_s0": s0, "floor_um": floor, "reference_rms_um": float(np.sqrt(np.mean(F0["residual_um"] ** 2))),
+                   "reference_noise_um": ref_sigma, "noise_est_um": sig0}
+    for ci, kinds_i in enumerate(plan_cases):
+        truth = {k: random_case(rng, k, ctx) for k in kinds_i if k != "none"}
+        sigma = float(rng.uniform(*noise))
+        err = vm.probe(pts, nrm, truth, sigma, rng)
+        F, rej = associate(_meas_table(ids, pts, nrm, err), passes, errors, tool, off_part_mm, deflection)
+        res = diagnose_points(apply_baseline(F, s0), None, floor)
+        true_order = _true_order(truth, vm, pts, nrm)
+        case = {"case": ci, "truth": truth, "true_order": true_order, "noise_um": sigma,
+                "found": res["effects"], "params": res["params"], "sigma_est_um": res["sigma_um"],
+                "rms_before_um": res["rms_before_um"], "rms_after_um": res["rms_after_um"], "shrink": res["shrink"],
+                "n_rejected": len(rej)}
+        top = res["effect"]
+        case["top1_ok"] = (top == (true_order[0] if true_order else "none"))
+        if len(truth) == 1 and top in truth:
+            case["param_error"] = param_error(top, truth[top], res["params"][top])
+        if len(truth) >= 2:
+            case["pair_order_ok"] = res["effects"][:len(true_order)] == true_order
+        results.append(case)
+        if progress:
+            progress(ci, case)
+    singles = [c for c in results if len(c["truth"]) <= 1]
+    eff = [c for c in singles if c["truth"]]
+    none = [c for c in singles if not c["truth"]]
+    perr = [c["param_error"] for c in eff if "param_error" in c]
+    summary = {
+        "calibration": calibration,
+        "seed": seed, "cases": len(singles), "pairs": len(results) - len(singles),
+        "noise_um": list(noise), "points_per_case": int(len(pts)),
+        "top1_accuracy": float(np.mean([c["top1_ok"] for c in singles])) if singles else None,
+        "top1_accuracy_effects": float(np.mean([c["top1_ok"] for c in eff])) if eff else None,
+        "none_correct": float(np.mean([c["top1_ok"] for c in none])) if none else None,
+        "median_shrink": float(np.median([c["shrink"] for c in eff])) if eff else None,
+        "param_error": {"median": float(np.median(perr)) if perr else None,
+                        "within_20pct": float(np.mean(np.array(perr) <= 0.2)) if perr else None},
+        "pair_order_ok": float(np.mean([c["pair_order_ok"] for c in results if "pair_order_ok" in c]))
+        if len(results) > len(singles) else None,
+        "per_effect": {k: {"n": sum(1 for c in singles if (list(c["truth"]) or ["none"])[0] == k),
+                           "top1": float(np.mean([c["top1_ok"] for c in singles if (list(c["truth"]) or ["none"])[0] == k]))
+                           if any((list(c["truth"]) or ["none"])[0] == k for c in singles) else None}
+                       for k in kinds},
+        "wall_s": time.perf_counter() - t_start,
+        "cases_detail": results,
+    }
+    return summary
+
+
+def _meas_table(ids, pts, nrm, err) -> pa.Table:
+    return pa.table({"point_id": pa.array(np.asarray(ids).astype(np.int64)), "x_mm": pts[:, 0], "y_mm": pts[:, 1],
+                     "z_mm": pts[:, 2], "nx": nrm[:, 0], "ny": nrm[:, 1], "nz": nrm[:, 2], "err_um": err,
+                     "t_s": np.full(len(err), np.nan)})
+
+
+def _true_order(truth: dict, vm, pts, nrm) -> list:
+    """Effects of a case ordered by the RMS of their own signature on the surface (noise-free)."""
+    if len(truth) <= 1:
+        return list(truth)
+    base = vm.probe(pts, nrm, {}, 0.0)
+    size = {k: float(np.sqrt(np.mean((vm.probe(pts, nrm, {k: v}, 0.0) - base) ** 2))) for k, v in truth.items()}
+    return sorted(size, key=lambda k: -size[k])
+
+
+def _jsonable(o):
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.bool_,)):
+        return bool(o)
+    return str(o)

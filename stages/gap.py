@@ -1,0 +1,488 @@
+"""Sim-to-real gap diagnosis (DESIGN §8, issue 7): where, which effect, how far.
+
+1. ``associate``: every measured point → the pass whose ball centre segment is nearest to the
+   point's ideal ball centre p + R·n (the pass that left the surface there), with features: contact
+   angle q, rotation angle φ, normal, machining time t, cut length so far L, tool-tip position,
+   distance to the nearest path corner with its angle and inside bisector, feed, predicted error.
+   Points farther than ``off_part_mm`` from every tool envelope, or whose normal disagrees with the
+   envelope's by more than ``MAX_NORMAL_DEG``, are rejected and listed.
+2. ``where``: residual r = measured − predicted; spatial blocks whose mean residual differs from
+   zero by more than 3 standard errors (and by more than the noise σ/2), with bounding box, pass
+   range, contact-angle band, time window, mean and 95 % interval.
+3. ``diagnose``: the effect catalogue below, each a physical parametric model of r, fitted on
+   training blocks and scored on held-out blocks (K-fold over spatial blocks). An effect is kept when
+   its held-out sum of squares improvement, in units of the noise variance σ² (σ from differences of
+   neighbouring points along the path, robust), exceeds the χ² quantile at ``ALPHA`` for its number of
+   parameters — a noise-based test, fixed a priori. Greedy: the best significant effect is added,
+   the others refitted jointly with it, and so on (at most ``MAX_EFFECTS``).
+4. ``how far``: held-out predictions (each point predicted by the fit without its block) of the
+   prediction plus the chosen effects: RMS, P95, max before and after.
+
+Catalogue (signature on r, µm; features as in ``associate``):
+
+- ``runout``: −e·sin q (e ≥ 0, µm)
+- ``tool_contour``: a·exp(−½((q − q0)/w)²) (a µm, q0 deg, w deg; + = tool smaller = material left)
+- ``tool_wear``: rate·L (µm per m of cut, ≥ 0)
+- ``thermal_drift``: n·A·(1 − exp(−t/τ)) (A µm per axis, τ s)
+- ``force_scale``: (s − 1)·predicted deflection error (s ratio)
+- ``servo_corner``: a·(b·n)·sin(θ/2)/sin 45°·exp(−d/λ) (a µm, λ mm; b inside bisector, θ corner angle)
+- ``machine_geometry``: n·(sx·x + exy·y + exz·z, sy·y + eyz·z, sz·z) at the tool tip (µm/mm)
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+import pyarrow as pa
+
+from stages import InputError
+from stages.gap_geometry import corner_features, nearest_pass, program_paths
+
+ALPHA = 1e-3          # false-claim rate of the per-effect test (a priori, not tuned)
+MAX_EFFECTS = 3
+K_FOLDS = 5
+MAX_NORMAL_DEG = 30.0
+EFFECT_NAMES = ("runout", "tool_contour", "tool_wear", "thermal_drift", "force_scale", "servo_corner",
+                "machine_geometry")
+
+
+# ============================================================================ association
+def associate(meas: pa.Table, passes: pa.Table, errors: Optional[pa.Table], tool: dict,
+              off_part_mm: float = 0.05, deflection: Optional[pa.Table] = None) -> tuple[dict, list]:
+    """Features of every measured point (dict of arrays) and the rejected points [(id, reason)].
+
+    The predicted error at a point is the prediction model's (``stages.errors.machining_error``)
+    evaluated at the point's own normal, contact and rotation angle with the deflection of its pass
+    (``deflection`` table; the nearest predicted pass when its own was not predicted), plus the tool
+    shape error at the point's q. Without a deflection table the pass's ``errors`` row is used.
+    """
+    if tool["type"] != "ball":
+        raise InputError(f"tool.type {tool['type']!r}: the gap diagnosis associates points for ball tools only")
+    R = float(tool["diameter_mm"]) / 2
+    pts = np.stack([meas.column(c).to_numpy() for c in ("x_mm", "y_mm", "z_mm")], 1)
+    nrm = np.stack([meas.column(c).to_numpy() for c in ("nx", "ny", "nz")], 1)
+    ids = meas.column("point_id").to_numpy()
+    n = len(pts)
+    paths = program_paths(passes, R, tool.get("control_point", "tip"))
+    if not paths:
+        raise InputError("gap: the run has no cutting passes")
+    best = np.full(n, np.inf)
+    which = np.zeros(n, np.int64)
+    row = np.zeros(n, np.int64)
+    uu = np.zeros(n)
+    cstar = pts + R * nrm
+    for k, p in enumerate(paths):
+        if len(p.pass_id) == 0:
+            continue
+        r, u, d = nearest_pass(p, cstar)
+        better = d < best
+        best[better], which[better], row[better], uu[better] = d[better], k, r[better], u[better]
+    F = {k: np.zeros(n) for k in ("u", "t_s", "cut_len_mm", "tip_x_mm", "tip_y_mm", "tip_z_mm", "corner_dist_mm",
+                                  "corner_deg", "bx", "by", "bz", "feed_mm_min", "feed_deg", "dist_mm", "normal_dev_deg",
+                                  "predicted_um", "pred_deflection_um", "pred_shape_um")}
+    prog = np.empty(n, dtype=object)
+    pass_id = np.zeros(n, np.int64)
+    for k, p in enumerate(paths):
+        m = which == k
+        if not m.any():
+            continue
+        r, u = row[m], uu[m]
+        prog[m] = p.program_id
+        pass_id[m] = p.pass_id[r]
+        c = p.c0[r] + u[:, None] * (p.c1 - p.c0)[r]
+        v = pts[m] - c
+        dist = np.linalg.norm(v, axis=1)
+        F["dist_mm"][m] = dist - R
+        cosn = -np.einsum("ij,ij->i", v, nrm[m]) / np.maximum(dist, 1e-12)
+        F["normal_dev_deg"][m] = np.degrees(np.arccos(np.clip(cosn, -1, 1)))
+        F["u"][m] = u
+        F["t_s"][m] = p.t0[r] + u * (p.t1[r] - p.t0[r])
+        F["cut_len_mm"][m] = p.L0[r] + u * p.length[r]
+        F["tip_x_mm"][m], F["tip_y_mm"][m], F["tip_z_mm"][m] = c[:, 0], c[:, 1], c[:, 2] - R
+        cd, ca, b = corner_features(p, r, u)
+        F["corner_dist_mm"][m], F["corner_deg"][m] = cd, ca
+        F["bx"][m], F["by"][m], F["bz"][m] = b[:, 0], b[:, 1], b[:, 2]
+        F["feed_mm_min"][m] = p.feed[r]
+        dd = p.c1[r] - p.c0[r]
+        F["feed_deg"][m] = np.degrees(np.arctan2(dd[:, 1], dd[:, 0]))
+        if deflection is not None and deflection.num_rows:
+            nm = nrm[m]
+            q = np.degrees(np.arccos(np.clip(nm[:, 2], -1, 1)))
+            phi = (np.degrees(np.arctan2(-nm[:, 1], -nm[:, 0])) - F["feed_deg"][m]) % 360.0
+            pe, pdf, psh = _predicted_at_points(deflection, p.program_id, p.pass_id[r], q, phi, nm, tool)
+        else:
+            pe, pdf, psh = _predicted(errors, p.program_id, p.pass_id, r)
+        F["predicted_um"][m], F["pred_deflection_um"][m], F["pred_shape_um"][m] = pe, pdf, psh
+    F["point_id"] = ids
+    F["program_id"] = prog
+    F["pass_id"] = pass_id
+    F["x_mm"], F["y_mm"], F["z_mm"] = pts[:, 0], pts[:, 1], pts[:, 2]
+    F["nx"], F["ny"], F["nz"] = nrm[:, 0], nrm[:, 1], nrm[:, 2]
+    F["q_deg"] = np.degrees(np.arccos(np.clip(nrm[:, 2], -1, 1)))
+    F["phi_deg"] = (np.degrees(np.arctan2(-nrm[:, 1], -nrm[:, 0])) - F["feed_deg"]) % 360.0
+    F["measured_um"] = meas.column("err_um").to_numpy().astype(float)
+    F["residual_um"] = F["measured_um"] - F["predicted_um"]
+    off = np.abs(F["dist_mm"]) > off_part_mm
+    badn = ~off & (F["normal_dev_deg"] > MAX_NORMAL_DEG)
+    rejected = [(int(i), f"off the part: {abs(d) * 1e3:.0f} µm from every tool envelope (limit {off_part_mm * 1e3:.0f} µm)")
+                for i, d in zip(ids[off], F["dist_mm"][off])]
+    rejected += [(int(i), f"normal {a:.0f}° from the machined surface's (limit {MAX_NORMAL_DEG:.0f}°)")
+                 for i, a in zip(ids[badn], F["normal_dev_deg"][badn])]
+    keep = ~(off | badn)
+    if keep.sum() < max(10, 0.5 * n):
+        raise InputError(f"gap: {n - keep.sum()} of {n} measured points are not on the machined surface "
+                         f"(first: point {rejected[0][0]}: {rejected[0][1]}); wrong file, frame or units?")
+    order = np.lexsort((F["u"][keep], F["pass_id"][keep], F["program_id"][keep].astype(str)))
+    F = {k: v[keep][order] for k, v in F.items()}
+    return F, rejected
+
+
+def _predicted_at_points(deflection, program_id, pass_ids, q, phi, normal, tool):
+    """Prediction model at each point: deflection of its pass read at the point's φ, projected on its n."""
+    from stages.errors import machining_error, read_profile
+    from stages.forces import list_values
+    z = np.zeros(len(q))
+    pid = np.asarray(deflection.column("program_id").to_pylist(), dtype=object)
+    m = np.flatnonzero(pid == program_id)
+    if not m.size:
+        return z, z.copy(), z.copy()
+    d_pass = deflection.column("pass_id").to_numpy()[m]
+    order = np.argsort(d_pass)
+    d_pass = d_pass[order]
+    i = np.clip(np.searchsorted(d_pass, pass_ids), 0, len(d_pass) - 1)
+    j = np.clip(i - 1, 0, len(d_pass) - 1)
+    pick = m[order[np.where(np.abs(d_pass[j] - pass_ids) < np.abs(d_pass[i] - pass_ids), j, i)]]
+    dx = list_values(deflection.column("dx_um"), "deflection.dx_um")[pick]
+    dy = list_values(deflection.column("dy_um"), "deflection.dy_um")[pick]
+    R = float(tool["diameter_mm"]) / 2
+    z_c = R * (1 - np.cos(np.radians(q)))
+    profile = read_profile(tool["profile"]) if tool.get("profile") else None
+    res = machining_error(dx, dy, phi, q, normal, z_c, tool, profile)
+    return (np.nan_to_num(res["err_um"]), np.nan_to_num(res["err_deflection_um"] + res["err_runout_um"]),
+            np.nan_to_num(res["err_shape_um"]))
+
+
+def _predicted(errors, program_id, pass_ids, rows):
+    """Prediction of the pass at each row; passes without one take the nearest predicted pass."""
+    z = np.zeros(len(rows))
+    if errors is None or errors.num_rows == 0:
+        return z, z.copy(), z.copy()
+    pid = np.asarray(errors.column("program_id").to_pylist(), dtype=object)
+    m = pid == program_id
+    if not m.any():
+        return z, z.copy(), z.copy()
+    e_pass = errors.column("pass_id").to_numpy()[m]
+    vals = [errors.column(c).to_numpy()[m].astype(float) for c in ("err_um", "err_deflection_um", "err_shape_um")]
+    order = np.argsort(e_pass)
+    e_pass = e_pass[order]
+    vals = [v[order] for v in vals]
+    want = pass_ids[rows]
+    i = np.clip(np.searchsorted(e_pass, want), 0, len(e_pass) - 1)
+    j = np.clip(i - 1, 0, len(e_pass) - 1)
+    pick = np.where(np.abs(e_pass[j] - want) < np.abs(e_pass[i] - want), j, i)
+    out = [np.nan_to_num(v[pick]) for v in vals]
+    return out[0], out[1], out[2]
+
+
+# ============================================================================ effects
+@dataclass
+class Effect:
+    name: str
+    grid: list                     # nonlinear parameter values (tuples), [()] when none
+    n_lin: int
+
+    def basis(self, F, th) -> np.ndarray:          # (n, n_lin)
+        return _BASIS[self.name](F, th)
+
+    def params(self, beta, th) -> dict:
+        return _PARAMS[self.name](beta, th)
+
+    @property
+    def n_params(self):
+        return self.n_lin + (len(self.grid[0]) if self.grid and self.grid[0] else 0)
+
+
+def _q(F):
+    return np.radians(F["q_deg"])
+
+
+_BASIS = {
+    "runout": lambda F, th: (-np.sin(_q(F)))[:, None],
+    "tool_contour": lambda F, th: np.exp(-0.5 * ((F["q_deg"] - th[0]) / th[1]) ** 2)[:, None],
+    "tool_wear": lambda F, th: (F["cut_len_mm"] * 1e-3)[:, None],
+    "thermal_drift": lambda F, th: (np.stack([F["nx"], F["ny"], F["nz"]], 1)
+                                    * (1 - np.exp(-np.maximum(F["t_s"], 0) / th[0]))[:, None]),
+    "force_scale": lambda F, th: F["pred_deflection_um"][:, None],
+    "servo_corner": lambda F, th: ((F["bx"] * F["nx"] + F["by"] * F["ny"] + F["bz"] * F["nz"])
+                                   * np.sin(np.radians(F["corner_deg"]) / 2) / math.sin(math.pi / 4)
+                                   * np.exp(-np.where(np.isfinite(F["corner_dist_mm"]), F["corner_dist_mm"], 1e9) / th[0]))[:, None],
+    "machine_geometry": lambda F, th: np.stack([F["nx"] * F["tip_x_mm"], F["ny"] * F["tip_y_mm"], F["nz"] * F["tip_z_mm"],
+                                                F["nx"] * F["tip_y_mm"], F["nx"] * F["tip_z_mm"], F["ny"] * F["tip_z_mm"]], 1),
+}
+_PARAMS = {
+    "runout": lambda b, th: {"e_um": float(b[0])},
+    "tool_contour": lambda b, th: {"a_um": float(b[0]), "q0_deg": float(th[0]), "width_deg": float(th[1])},
+    "tool_wear": lambda b, th: {"rate_um_per_m": float(b[0])},
+    "thermal_drift": lambda b, th: {"ax_um": float(b[0]), "ay_um": float(b[1]), "az_um": float(b[2]), "tau_s": float(th[0])},
+    "force_scale": lambda b, th: {"scale": float(1 + b[0])},
+    "servo_corner": lambda b, th: {"a_um": float(b[0]), "lambda_mm": float(th[0])},
+    "machine_geometry": lambda b, th: dict(zip(("sx", "sy", "sz", "exy", "exz", "eyz"), map(float, b))),
+}
+NONNEG = {"runout", "tool_wear"}
+
+
+def catalogue(F) -> list[Effect]:
+    """The effects with nonlinear grids sized to the data (q range, duration, corner spacing)."""
+    qlo, qhi = np.percentile(F["q_deg"], [1, 99])
+    T = max(float(F["t_s"].max()), 1e-6)
+    q0s = np.arange(max(0.0, qlo), qhi + 1e-9, 2.0)
+    widths = [4.0, 5.0, 6.5, 8.0, 10.0, 12.5, 15.0, 17.5, 20.0]   # a local profile error, not a size error
+    taus = list(T * np.geomspace(0.02, 10.0, 28))
+    lams = list(np.geomspace(0.05, 5.0, 24))
+    cat = [
+        Effect("runout", [()], 1),
+        Effect("tool_contour", [(a, w) for a in q0s for w in widths], 1),
+        Effect("tool_wear", [()], 1),
+        Effect("thermal_drift", [(t,) for t in taus], 3),
+        Effect("force_scale", [()], 1),
+        Effect("servo_corner", [(lm,) for lm in lams], 1),
+        Effect("machine_geometry", [()], 6),
+    ]
+    if not np.any(np.abs(F["pred_deflection_um"]) > 0):
+        cat = [e for e in cat if e.name != "force_scale"]
+    if not np.any(np.isfinite(F["corner_dist_mm"])):
+        cat = [e for e in cat if e.name != "servo_corner"]
+    return cat
+
+
+def _lstsq(X, y, nonneg_first=False):
+    beta, *_ = np.linalg.lstsq(X, y, rcond=None)
+    return beta
+
+
+def fit_effects(F, y, train, chosen: list, cand: Effect):
+    """Fit ``chosen`` (fixed nonlinear params) + ``cand`` on ``train``: best grid value, betas."""
+    base = [e.basis(F, th) for e, th in chosen]
+    best = None
+    for th in cand.grid:
+        Xc = cand.basis(F, th)
+        X = np.hstack(base + [Xc]) if base else Xc
+        Xt, yt = X[train], y[train]
+        beta, *_ = np.linalg.lstsq(Xt, yt, rcond=None)
+        if cand.name in NONNEG and beta[-1] < 0:
+            # constrained: the effect cannot be negative; refit with it at zero
+            if base:
+                b0, *_ = np.linalg.lstsq(np.hstack(base)[train], yt, rcond=None)
+                beta = np.concatenate([b0, [0.0]])
+            else:
+                beta = np.zeros(X.shape[1])
+        sse = float(np.sum((yt - Xt @ beta) ** 2))
+        if best is None or sse < best[0]:
+            best = (sse, th, beta)
+    return best[1], best[2]
+
+
+def blocks(F, n_cells: int = 6) -> np.ndarray:
+    """Spatial block index of each point (cubic cells, ~n_cells along the longest extent)."""
+    p = np.stack([F["x_mm"], F["y_mm"], F["z_mm"]], 1)
+    lo, hi = p.min(0), p.max(0)
+    h = max(float((hi - lo).max()) / n_cells, 1e-6)
+    c = np.floor((p - lo) / h).astype(np.int64)
+    _, inv = np.unique(c, axis=0, return_inverse=True)
+    return inv.ravel()
+
+
+def folds(block: np.ndarray, k: int = K_FOLDS) -> np.ndarray:
+    """Fold of each point: blocks dealt to folds in a fixed pseudo-random order."""
+    nb = block.max() + 1
+    perm = np.random.default_rng(12345).permutation(nb)
+    return (perm[block] % k).astype(np.int64)
+
+
+def noise_sigma(F, y) -> float:
+    """Robust σ of the probe noise: MAD of differences of consecutive points along the path."""
+    same = (F["program_id"][1:] == F["program_id"][:-1])
+    step = np.hypot(np.hypot(np.diff(F["x_mm"]), np.diff(F["y_mm"])), np.diff(F["z_mm"]))
+    ok = same & (step < 1.0)
+    d = np.diff(y)[ok] if ok.sum() >= 10 else np.diff(y)
+    if len(d) == 0:
+        return float(np.std(y)) or 1.0
+    return max(float(1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(2)), 1e-6)
+
+
+def cv_predict(F, y, fold, effects: list, cand: Optional[Effect] = None):
+    """Held-out prediction of ``effects`` (+ cand): each fold predicted by the fit on the others.
+
+    ``effects`` are (Effect, grid value) with fixed nonlinear parameters; the candidate's grid value
+    is chosen on each training set.
+    """
+    pred = np.zeros_like(y)
+    for f in range(fold.max() + 1):
+        test = fold == f
+        train = ~test
+        if cand is not None:
+            th, beta = fit_effects(F, y, train, effects, cand)
+            X = np.hstack([e.basis(F, t) for e, t in effects] + [cand.basis(F, th)])
+        else:
+            X = np.hstack([e.basis(F, t) for e, t in effects])
+            beta, *_ = np.linalg.lstsq(X[train], y[train], rcond=None)
+        pred[test] = X[test] @ beta
+    return pred
+
+
+def apply_baseline(F: dict, force_scale: float) -> dict:
+    """The prediction with its force model scaled (a calibration found on a reference part)."""
+    F = dict(F)
+    F["predicted_um"] = F["predicted_um"] + (force_scale - 1.0) * F["pred_deflection_um"]
+    F["pred_deflection_um"] = force_scale * F["pred_deflection_um"]
+    F["residual_um"] = F["measured_um"] - F["predicted_um"]
+    return F
+
+
+def diagnose(F: dict, noise_um: Optional[float] = None, floor_um: float = 0.0) -> dict:
+    """Rank the catalogue on held-out blocks, choose effects greedily, measure the shrink.
+
+    Returns a dict: effect, effects, params, ranking (list of dicts), sigma_um, rms/p95/max before and
+    after (held-out), cv residual after (array), fitted contribution per effect (arrays).
+    """
+    y = F["residual_um"].astype(float)
+    n = len(y)
+    blk = blocks(F)
+    fold = folds(blk)
+    sigma = float(noise_um) if noise_um else noise_sigma(F, y)
+    cat = catalogue(F)
+    from scipy.stats import chi2
+    chosen: list = []                          # (Effect, grid value)
+    ranking = []
+    base_pred = np.zeros(n)
+    sse_base = float(np.sum(y ** 2))
+    first_round = None
+    for step in range(MAX_EFFECTS):
+        rows = []
+        for eff in cat:
+            if any(e.name == eff.name for e, _ in chosen):
+                continue
+            pred = cv_predict(F, y, fold, chosen, eff)
+            sse = float(np.sum((y - pred) ** 2))
+            gain = (sse_base - sse) / sigma ** 2
+            thr = float(chi2.ppf(1 - ALPHA, eff.n_params))
+            # practical size: the held-out RMS the effect explains must reach half the noise level
+            # (probe noise and, when known, the model's own floor on a reference part)
+            explained = math.sqrt(max(sse_base - sse, 0.0) / n)
+            big = explained >= 0.5 * math.hypot(sigma, floor_um)
+            rows.append({"effect": eff.name, "sse": sse, "gain": gain, "threshold": thr, "eff": eff, "pred": pred,
+                         "explained_um": explained, "big": big})
+        if not rows:
+            break
+        rows.sort(key=lambda r: -r["gain"])
+        if first_round is None:
+            first_round = rows
+        top = rows[0]
+        if not (top["gain"] > top["threshold"] and top["big"]):
+            break
+        th, _ = fit_effects(F, y, np.ones(n, bool), chosen, top["eff"])
+        chosen.append((top["eff"], th))
+        sse_base = top["sse"]
+        base_pred = top["pred"]
+    # final fit on all points: parameters and each effect's contribution
+    params, contrib = {}, {}
+    if chosen:
+        X = np.hstack([e.basis(F, t) for e, t in chosen])
+        beta, *_ = np.linalg.lstsq(X, y, rcond=None)
+        k = 0
+        for e, t in chosen:
+            b = beta[k:k + e.n_lin]
+            params[e.name] = e.params(b, t)
+            contrib[e.name] = e.basis(F, t) @ b
+            k += e.n_lin
+    order = sorted(contrib, key=lambda nme: -float(np.sqrt(np.mean(contrib[nme] ** 2))))
+    after = y - base_pred
+    rms_b, rms_a = _rms(y), _rms(after)
+    for i, r in enumerate(first_round or []):
+        ranking.append({"effect": r["effect"], "rank": i + 1, "rms_before_um": rms_b,
+                        "rms_after_um": _rms(y - r["pred"]), "gain_sigma2": r["gain"],
+                        "threshold_sigma2": r["threshold"], "explained_um": r["explained_um"],
+                        "significant": bool(r["gain"] > r["threshold"] and r["big"])})
+    return {
+        "effect": order[0] if order else "none",
+        "effects": order,
+        "params": {k: params[k] for k in order},
+        "sigma_um": sigma, "floor_um": floor_um,
+        "n_points": n,
+        "n_blocks": int(blk.max() + 1),
+        "rms_before_um": rms_b, "rms_after_um": rms_a,
+        "p95_before_um": float(np.percentile(np.abs(y), 95)), "p95_after_um": float(np.percentile(np.abs(after), 95)),
+        "max_before_um": float(np.abs(y).max()), "max_after_um": float(np.abs(after).max()),
+        "shrink": float(1 - rms_a / rms_b) if rms_b > 0 else 0.0,
+        "ranking": ranking,
+        "_after": after, "_contrib": contrib, "_blocks": blk,
+    }
+
+
+def _rms(v) -> float:
+    return float(np.sqrt(np.mean(np.square(v)))) if len(v) else 0.0
+
+
+def where(F, y, sigma: float, blk: np.ndarray, z: float = 3.0, top: int = 20) -> list[dict]:
+    """Blocks whose mean residual is significantly non-zero (|mean| > z·se and > σ/2)."""
+    nb = blk.max() + 1
+    cnt = np.bincount(blk, minlength=nb)
+    mean = np.bincount(blk, y, nb) / np.maximum(cnt, 1)
+    var = np.bincount(blk, y * y, nb) / np.maximum(cnt, 1) - mean ** 2
+    se = np.sqrt(np.maximum(var, sigma ** 2) / np.maximum(cnt, 1))
+    sig = (cnt >= 3) & (np.abs(mean) > z * se) & (np.abs(mean) > 0.5 * sigma)
+    out = []
+    for b in np.flatnonzero(sig)[np.argsort(-np.abs(mean[sig]))][:top]:
+        m = blk == b
+        progs = sorted(set(F["program_id"][m].tolist()))
+        out.append({
+            "bbox_mm": [float(F["x_mm"][m].min()), float(F["y_mm"][m].min()), float(F["z_mm"][m].min()),
+                        float(F["x_mm"][m].max()), float(F["y_mm"][m].max()), float(F["z_mm"][m].max())],
+            "programs": progs,
+            "pass_range": [int(F["pass_id"][m].min()), int(F["pass_id"][m].max())],
+            "contact_deg": [float(F["q_deg"][m].min()), float(F["q_deg"][m].max())],
+            "time_s": [float(F["t_s"][m].min()), float(F["t_s"][m].max())],
+            "n_points": int(cnt[b]),
+            "mean_residual_um": float(mean[b]),
+            "ci95_um": [float(mean[b] - 1.96 * se[b]), float(mean[b] + 1.96 * se[b])],
+        })
+    return out
+
+
+def gap_points_table(F, after) -> pa.Table:
+    cols = {
+        "point_id": pa.array(F["point_id"].astype(np.int64)),
+        "program_id": pa.array(F["program_id"].astype(str).tolist(), pa.string()),
+        "pass_id": pa.array(F["pass_id"].astype(np.int32)),
+        "predicted_um": F["predicted_um"], "measured_um": F["measured_um"], "residual_um": F["residual_um"],
+    }
+    for k in EXTRA_POINT_COLUMNS:
+        if k == "residual_after_um":
+            cols[k] = after
+        else:
+            cols[k] = np.asarray(F[k], dtype=float)
+    return pa.table(cols)
+
+
+EXTRA_POINT_COLUMNS = ("x_mm", "y_mm", "z_mm", "nx", "ny", "nz", "q_deg", "phi_deg", "t_s", "cut_len_mm",
+                       "corner_dist_mm", "corner_deg", "feed_mm_min", "pred_deflection_um", "dist_mm",
+                       "residual_after_um")
+
+
+def gap_effects_table(res: dict) -> pa.Table:
+    rows = res["ranking"]
+    chosen = res["params"]
+    return pa.table({
+        "effect": pa.array([r["effect"] for r in rows], pa.string()),
+        "params": pa.array([json.dumps(chosen.get(r["effect"], {})) for r in rows], pa.string()),
+        "rms_before_um": [r["rms_before_um"] for r in rows],
+        "rms_after_um": [r["rms_after_um"] for r in rows],
+        "explained": [1 - r["rms_after_um"] / r["rms_before_um"] if r["rms_before_um"] > 0 else 0.0 for r in rows],
+        "rank": pa.array([r["rank"] for r in rows], pa.int32()),
+        "gain_sigma2": [r["gain_sigma2"] for r in rows],
+        "threshold_sigma2": [r["threshold_sigma2"] for r in rows],
+        "chosen": [r["effect"] in chosen for r in rows],
+    })

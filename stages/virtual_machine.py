@@ -1,0 +1,478 @@
+"""Virtual machine: an independent, higher-fidelity simulation of machining that writes "measured" data.
+
+It exists to test the gap diagnosis (DESIGN §8.5, issue 7): it machines the programs' passes with
+its own models and probes the finished surface at the points of a measurement plan, optionally with
+unmodelled effects switched on. It shares nothing with the prediction path (``cutting``, ``frf``,
+``forces``, ``deflection``, ``errors``, ``generating``, ``render``); it reads parsed passes only.
+
+Model (all vectorised over passes / points)
+-------------------------------------------
+- Engagement: micro-edges of the ball (``N_Z`` levels × ``N_PHI`` position angles) at each pass's
+  mid point are in the material when they lie below the stock (a height field rasterised from the
+  stock mesh, or the box), outside the swept ball of every earlier pass (exact point–segment
+  distance to candidate passes from a KD-tree) and on the front half (chip > 0).
+- Forces: discrete flutes with helix lag; chip ``h_j = sin κ·max(0, min_m(m·fz·cos φ + ρ_j − ρ_{j+m}))``
+  with the flutes' radial offsets ρ_j (runout); Lee–Altintas tangential / radial / axial forces.
+- Dynamics: each mode (x and y) integrated in the time domain with the exact zero-order-hold
+  state-transition matrix from rest until the free response has died out; the last revolution is
+  the periodic deflection of the pass (no FFT, no frequency-domain compliance).
+- Surface: every plan point p (normal n) is cut by discrete tooth passages: for each flute and the
+  spindle revolutions around the time the nominal centre passes p, the flute's sphere (radius R
+  plus the effects' profile changes, centre = path position at that instant + deflection at the
+  spindle angle of the passage + the effects' machine offsets + flute offset ρ along the contact
+  direction) removes material; the surface left along n is the lowest entry of the ray p + s·n
+  into any of these spheres. ``err_um`` = s (positive = material left, DESIGN §5) + probe noise.
+
+Effects (name, parameters, signature on the measured deviation r)
+-----------------------------------------------------------------
+- ``runout``: ``e_um`` (radial runout of the largest flute), ``phase_deg``: ρ_j = e·cos(2πj/N + phase);
+  the largest flute cuts the surface: r ≈ −ρ_max·sin q; also changes the chip of each flute.
+- ``tool_contour``: ``a_um``, ``q0_deg``, ``width_deg``: profile error w(q) = a·exp(−½((q−q0)/width)²),
+  positive = tool smaller there (seed 002 sign): r = +w(q).
+- ``tool_wear``: ``rate_um_per_m``: radius loss = rate·L (L = cut length so far, m): r = +rate·L.
+- ``thermal_drift``: ``ax_um``, ``ay_um``, ``az_um``, ``tau_s``: tool offset A·(1 − exp(−t/τ)):
+  r = n·A·(1 − exp(−t/τ)).
+- ``force_scale``: ``scale``: every cutting coefficient × scale (mis-calibrated material): the
+  deflection part of the error scales by it.
+- ``servo_corner``: ``a_um``, ``lambda_mm``: near a path corner of angle θ the tool lags towards the
+  inside of the turn (unit bisector b) by a·sin(θ/2)/sin(45°)·exp(−d/λ), d = path distance to the
+  corner: r = (b·n)·that.
+- ``machine_geometry``: ``sx``, ``sy``, ``sz`` (scale, µm/mm), ``exy``, ``exz``, ``eyz`` (squareness,
+  µm/mm): tool offset dx = sx·x + exy·y + exz·z, dy = sy·y + eyz·z, dz = sz·z at the tool tip
+  position (machine frame): r = n·offset.
+"""
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+import pyarrow as pa
+
+from stages import InputError
+from stages.gap_geometry import CORNER_DEG, Path3, corner_features, nearest_pass, program_paths  # noqa: F401
+
+N_Z = 30          # micro-edge levels over the ball
+N_PHI = 96        # position angles of the engagement grid
+N_ROT = 96        # spindle angle samples per revolution
+PASSAGES = (-1, 0, 1)   # spindle revolutions around the nominal passage that cut each point
+
+EFFECTS = {
+    "runout": ("e_um", "phase_deg"),
+    "tool_contour": ("a_um", "q0_deg", "width_deg"),
+    "tool_wear": ("rate_um_per_m",),
+    "thermal_drift": ("ax_um", "ay_um", "az_um", "tau_s"),
+    "force_scale": ("scale",),
+    "servo_corner": ("a_um", "lambda_mm"),
+    "machine_geometry": ("sx", "sy", "sz", "exy", "exz", "eyz"),
+}
+DEFAULTS = {
+    "runout": {"e_um": 5.0, "phase_deg": 0.0},
+    "tool_contour": {"a_um": 5.0, "q0_deg": 30.0, "width_deg": 10.0},
+    "tool_wear": {"rate_um_per_m": 20.0},
+    "thermal_drift": {"ax_um": 0.0, "ay_um": 0.0, "az_um": -10.0, "tau_s": 600.0},
+    "force_scale": {"scale": 1.5},
+    "servo_corner": {"a_um": 10.0, "lambda_mm": 0.5},
+    "machine_geometry": {"sx": 0.0, "sy": 0.0, "sz": 0.0, "exy": 0.0, "exz": 0.0, "eyz": 0.0},
+}
+
+
+def parse_effect(text: str) -> tuple[str, dict]:
+    """``NAME:key=value,...`` → (name, params with defaults filled); InputError naming what is wrong."""
+    name, _, rest = text.partition(":")
+    name = name.strip()
+    if name not in EFFECTS:
+        raise InputError(f"--effect {text!r}: unknown effect {name!r} (known: {', '.join(EFFECTS)})")
+    params = dict(DEFAULTS[name])
+    for item in filter(None, (s.strip() for s in rest.split(","))):
+        k, eq, v = item.partition("=")
+        if not eq or k.strip() not in EFFECTS[name]:
+            raise InputError(f"--effect {text!r}: {item!r} is not key=value with key in {EFFECTS[name]}")
+        try:
+            params[k.strip()] = float(v)
+        except ValueError:
+            raise InputError(f"--effect {text!r}: {k.strip()}={v!r} is not a number") from None
+    if name == "force_scale" and not params["scale"] > 0:
+        raise InputError(f"--effect {text!r}: scale must be > 0")
+    if name == "thermal_drift" and not params["tau_s"] > 0:
+        raise InputError(f"--effect {text!r}: tau_s must be > 0")
+    if name == "servo_corner" and not params["lambda_mm"] > 0:
+        raise InputError(f"--effect {text!r}: lambda_mm must be > 0")
+    if name == "runout" and params["e_um"] < 0:
+        raise InputError(f"--effect {text!r}: e_um must be >= 0")
+    return name, params
+
+
+# ----------------------------------------------------------------------------------- stock
+def stock_height_fn(stock, cell_mm: float = 0.05):
+    """z_top(x, y) of the stock (3-axis: the highest up-facing surface); -inf outside it."""
+    if isinstance(stock, dict) and "box" in stock:
+        x0, y0, z0, x1, y1, z1 = [float(v) for v in stock["box"]]
+
+        def box_h(x, y):
+            inside = (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)
+            return np.where(inside, z1, -np.inf)
+        return box_h
+    import trimesh
+    path = os.fspath(stock)
+    if not os.path.exists(path):
+        raise InputError(f"{path}: stock model not found")
+    m = trimesh.load(path, force="mesh")
+    tris = np.asarray(m.triangles, float)
+    nz = np.asarray(m.face_normals)[:, 2]
+    tris = tris[nz > 1e-6]
+    lo = tris.min(axis=(0, 1))
+    hi = tris.max(axis=(0, 1))
+    nx = int(np.ceil((hi[0] - lo[0]) / cell_mm)) + 1
+    ny = int(np.ceil((hi[1] - lo[1]) / cell_mm)) + 1
+    H = np.full(nx * ny, -np.inf)
+    # cells whose centre lies in each triangle's bounding box, tested by barycentric coordinates
+    i0 = np.floor((tris[:, :, 0].min(1) - lo[0]) / cell_mm).astype(np.int64)
+    i1 = np.ceil((tris[:, :, 0].max(1) - lo[0]) / cell_mm).astype(np.int64)
+    j0 = np.floor((tris[:, :, 1].min(1) - lo[1]) / cell_mm).astype(np.int64)
+    j1 = np.ceil((tris[:, :, 1].max(1) - lo[1]) / cell_mm).astype(np.int64)
+    wi, wj = i1 - i0 + 1, j1 - j0 + 1
+    cnt = wi * wj
+    for start in range(0, len(tris), 20000):
+        sl = slice(start, start + 20000)
+        c = cnt[sl]
+        t = np.repeat(np.arange(start, min(start + 20000, len(tris))), c)
+        loc = np.arange(c.sum()) - np.repeat(np.cumsum(c) - c, c)
+        ii = i0[t] + loc % wi[t]
+        jj = j0[t] + loc // wi[t]
+        ok = (ii >= 0) & (ii < nx) & (jj >= 0) & (jj < ny)
+        t, ii, jj = t[ok], ii[ok], jj[ok]
+        px, py = lo[0] + ii * cell_mm, lo[1] + jj * cell_mm
+        a, b, cc = tris[t, 0], tris[t, 1], tris[t, 2]
+        v0x, v0y = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
+        v1x, v1y = cc[:, 0] - a[:, 0], cc[:, 1] - a[:, 1]
+        v2x, v2y = px - a[:, 0], py - a[:, 1]
+        den = v0x * v1y - v1x * v0y
+        den = np.where(np.abs(den) > 1e-15, den, np.nan)
+        l1 = (v2x * v1y - v1x * v2y) / den
+        l2 = (v0x * v2y - v2x * v0y) / den
+        inside = (l1 >= -1e-9) & (l2 >= -1e-9) & (l1 + l2 <= 1 + 1e-9)
+        z = a[:, 2] + l1 * (b[:, 2] - a[:, 2]) + l2 * (cc[:, 2] - a[:, 2])
+        np.maximum.at(H, (jj * nx + ii)[inside], z[inside])
+    H = H.reshape(ny, nx)
+
+    def mesh_h(x, y):
+        fi = (np.asarray(x) - lo[0]) / cell_mm
+        fj = (np.asarray(y) - lo[1]) / cell_mm
+        i = np.clip(np.floor(fi).astype(np.int64), 0, nx - 2)
+        j = np.clip(np.floor(fj).astype(np.int64), 0, ny - 2)
+        tx, ty = np.clip(fi - i, 0, 1), np.clip(fj - j, 0, 1)
+        with np.errstate(invalid="ignore"):
+            h = ((1 - tx) * (1 - ty) * H[j, i] + tx * (1 - ty) * H[j, i + 1]
+                 + (1 - tx) * ty * H[j + 1, i] + tx * ty * H[j + 1, i + 1])
+        out = (fi < 0) | (fi > nx - 1) | (fj < 0) | (fj > ny - 1)
+        return np.where(out | ~np.isfinite(h), -np.inf, h)
+    return mesh_h
+
+
+# ----------------------------------------------------------------------------------- machine
+def machine_modes(frf: Optional[dict], axis: str) -> list[tuple[float, float, float]]:
+    """Modes (fn_hz, zeta, k_n_per_um) of one axis; a measured table is reduced to its peaks."""
+    if not frf:
+        raise InputError("machine.frf: the virtual machine needs the machine's compliance (modes or table)")
+    if frf.get(axis):
+        return [(float(m["fn_hz"]), float(m["zeta"]), float(m["k_n_per_um"])) for m in frf[axis]]
+    from stages import read_numeric_csv
+    tab = read_numeric_csv(frf["table"], ["freq_hz", f"{axis}{axis}_re", f"{axis}{axis}_im"], "FRF table")
+    f, im = tab[:, 0], -tab[:, 2]
+    # peak picking on −Im G: a mode has −Im = 1/(2ζk) at fn; ζ from the half-power width
+    pk = np.flatnonzero((im[1:-1] > im[:-2]) & (im[1:-1] >= im[2:]) & (im[1:-1] > 0.1 * im.max())) + 1
+    modes = []
+    for p in pk:
+        half = im[p] / 2
+        lo = p
+        while lo > 0 and im[lo] > half:
+            lo -= 1
+        hi = p
+        while hi < len(im) - 1 and im[hi] > half:
+            hi += 1
+        zeta = max((f[hi] - f[lo]) / (2 * f[p]), 1e-3)
+        modes.append((float(f[p]), float(zeta), float(1.0 / (2 * zeta * im[p]))))
+    return modes
+
+
+def simulate_deflection(force: np.ndarray, rpm: np.ndarray, modes) -> np.ndarray:
+    """Periodic deflection (µm) over the last revolution, time-domain modal integration from rest.
+
+    force: (P, N_ROT) newton on the tool, repeating every revolution; exact ZOH discretisation of
+    u'' + 2ζωn u' + ωn² u = ωn²/k · F for each mode.
+    """
+    out = np.zeros_like(force)
+    for r in np.unique(rpm):
+        sel = np.flatnonzero(rpm == r)
+        T = 60.0 / r
+        dt = T / force.shape[1]
+        for fn, zeta, k in modes:
+            wn = 2 * np.pi * fn
+            A = np.array([[0.0, 1.0], [-wn * wn, -2 * zeta * wn]])
+            from scipy.linalg import expm
+            M = expm(np.block([[A, np.array([[0.0], [wn * wn / k]])], [np.zeros((1, 3))]]) * dt)
+            Phi, Gam = M[:2, :2], M[:2, 2]
+            n_rev = int(np.ceil(12.0 / (zeta * wn * T))) + 1
+            x = np.zeros((len(sel), 2))
+            f = force[sel]
+            last = np.zeros((len(sel), force.shape[1]))
+            for rev in range(n_rev):
+                for i in range(force.shape[1]):
+                    if rev == n_rev - 1:
+                        last[:, i] = x[:, 0]
+                    x = x @ Phi.T + f[:, i:i + 1] * Gam[None, :]
+            out[sel] += last
+    return out
+
+
+# ----------------------------------------------------------------------------------- machine model
+class VirtualMachine:
+    """One program machined on the virtual machine; effects are applied per call of ``probe``."""
+
+    def __init__(self, passes: pa.Table, tool: dict, material: dict, machine: dict, stock):
+        if tool["type"] != "ball":
+            raise InputError(f"tool.type {tool['type']!r}: the virtual machine models ball-nose tools only")
+        self.R = float(tool["diameter_mm"]) / 2
+        self.flutes = int(tool["flutes"])
+        self.helix = math.radians(float(tool.get("helix_deg") or 0.0))
+        self.base_runout = float(tool.get("runout_um") or 0.0)
+        self.coeffs = {k: float(material.get(k) or 0.0) for k in ("ktc", "krc", "kac", "kte", "kre", "kae")}
+        frf = (machine or {}).get("frf")
+        self.modes = {"x": machine_modes(frf, "x"), "y": machine_modes(frf, "y")}
+        paths = program_paths(passes, self.R, tool.get("control_point", "tip"))
+        if len(paths) != 1:
+            raise InputError(f"virtual machine: one program at a time, got {len(paths)}")
+        self.path = paths[0]
+        if len(self.path.pass_id) == 0:
+            raise InputError(f"{self.path.program_id}: no cutting moves to machine")
+        self.stock_h = stock_height_fn(stock)
+        self._engaged = self._engagement()
+        self._defl_cache: dict = {}
+
+    # -- engagement of every pass at its mid point ------------------------------------------------
+    def _edge_grid(self):
+        R = self.R
+        zc = (np.arange(N_Z) + 0.5) * R / N_Z                       # heights above the tip
+        kappa = np.arccos(np.clip(1 - zc / R, -1, 1))             # axial immersion = contact angle
+        ds = R * (np.arccos(np.clip(1 - (zc + 0.5 * R / N_Z) / R, -1, 1))
+                  - np.arccos(np.clip(1 - (zc - 0.5 * R / N_Z) / R, -1, 1)))
+        return zc, kappa, ds
+
+    def _engagement(self):
+        p = self.path
+        zc, kappa, _ = self._edge_grid()
+        phi = (np.arange(N_PHI) + 0.5) * 2 * np.pi / N_PHI              # from the feed direction, CCW
+        mid = 0.5 * (p.c0 + p.c1)
+        d = p.c1 - p.c0
+        fdeg = np.arctan2(d[:, 1], d[:, 0])
+        ang = fdeg[:, None, None] + phi[None, None, :]                   # machine azimuth
+        rr = self.R * np.sin(kappa)[None, :, None]
+        pts = np.stack(np.broadcast_arrays(mid[:, None, None, 0] + rr * np.cos(ang),
+                                           mid[:, None, None, 1] + rr * np.sin(ang),
+                                           mid[:, None, None, 2] - self.R * np.cos(kappa)[None, :, None]), -1)
+        P = len(mid)
+        flat = pts.reshape(-1, 3)
+        owner = np.repeat(np.arange(P), N_Z * N_PHI)
+        inside = flat[:, 2] < self.stock_h(flat[:, 0], flat[:, 1]) - 1e-9
+        # removed by an earlier pass: exact distance to the candidate earlier passes' centre segments
+        from scipy.spatial import cKDTree
+        ln = p.length
+        nsub = np.maximum(1, np.ceil(ln / 0.25).astype(np.int64))
+        sub_owner = np.repeat(np.arange(P), nsub)
+        frac = (np.arange(nsub.sum()) - np.repeat(np.cumsum(nsub) - nsub, nsub) + 0.5) / np.repeat(nsub, nsub)
+        mids = p.c0[sub_owner] + frac[:, None] * d[sub_owner]
+        tree = cKDTree(mids)
+        removed = np.zeros(len(flat), bool)
+        cand_idx = np.flatnonzero(inside)
+        if cand_idx.size:
+            reach = self.R + 0.5 * float((ln / nsub).max()) + 1e-6
+            sdm = tree.sparse_distance_matrix(cKDTree(flat[cand_idx]), reach, output_type="ndarray")
+            sj, pi = sdm["i"].astype(np.int64), cand_idx[sdm["j"]]
+            prev = sub_owner[sj]
+            ok = prev < owner[pi]
+            pi, prev = pi[ok], prev[ok]
+            a, ab = p.c0[prev], d[prev]
+            u = np.clip(np.einsum("ij,ij->i", flat[pi] - a, ab) / np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-30), 0, 1)
+            dist = np.linalg.norm(a + u[:, None] * ab - flat[pi], axis=1)
+            hit = dist < self.R - 1e-6
+            removed[pi[hit]] = True
+        eng = (inside & ~removed).reshape(P, N_Z, N_PHI)
+        return eng
+
+    # -- forces and deflection --------------------------------------------------------------------
+    def deflection(self, runout_e_um: float = 0.0, runout_phase_deg: float = 0.0, scale: float = 1.0):
+        """(dx, dy) µm over one revolution per pass, at spindle angles θ_i = i·360/N_ROT."""
+        key = (round(runout_e_um, 6), round(runout_phase_deg, 6))
+        if key not in self._defl_cache:
+            self._defl_cache[key] = self._deflection(runout_e_um, runout_phase_deg)
+        dx, dy = self._defl_cache[key]
+        return dx * scale, dy * scale
+
+    def flute_offsets(self, e_um: float, phase_deg: float) -> np.ndarray:
+        j = np.arange(self.flutes)
+        return e_um * 1e-3 * np.cos(2 * np.pi * j / self.flutes + math.radians(phase_deg))
+
+    def _deflection(self, e_um, phase_deg):
+        p = self.path
+        zc, kappa, ds = self._edge_grid()
+        Z = self.flutes
+        theta = np.arange(N_ROT) * 2 * np.pi / N_ROT
+        lag = zc * math.tan(self.helix) / self.R
+        # position angle from the feed direction of flute j, level l at spindle angle θ (clockwise spindle)
+        phi = (-theta[:, None, None] - 2 * np.pi * np.arange(Z)[None, :, None] / Z + lag[None, None, :]) % (2 * np.pi)
+        rho = self.flute_offsets(e_um + self.base_runout, phase_deg)
+        fz = p.feed / (p.rpm * Z)                                            # (P,)
+        cphi, sphi = np.cos(phi), np.sin(phi)
+        best = None
+        for m in range(1, Z + 1):
+            delta = rho - rho[(np.arange(Z) + m) % Z]
+            cand = m * fz[:, None, None, None] * cphi[None] + delta[None, None, :, None]
+            best = cand if best is None else np.minimum(best, cand)
+        h = np.maximum(best, 0.0) * np.sin(kappa)                            # (P, rot, Z, N_Z)
+        ibin = np.minimum((phi / (2 * np.pi) * N_PHI).astype(np.int64), N_PHI - 1)
+        eng = self._engaged[:, np.arange(N_Z)[None, None, :], ibin]           # (P, rot, Z, N_Z)
+        cut = eng & (h > 1e-12)
+        c = self.coeffs
+        ft = (c["ktc"] * h * ds + c["kte"] * ds) * cut
+        fr = (c["krc"] * h * ds + c["kre"] * ds) * cut
+        fa = (c["kac"] * h * ds + c["kae"] * ds) * cut
+        sk, ck = np.sin(kappa), np.cos(kappa)
+        fxf = np.sum(-fr * sk * cphi - ft * sphi - fa * ck * cphi, axis=(2, 3))
+        fyf = np.sum(-fr * sk * sphi + ft * cphi - fa * ck * sphi, axis=(2, 3))
+        d = p.c1 - p.c0
+        f = np.arctan2(d[:, 1], d[:, 0])[:, None]
+        fx = np.cos(f) * fxf - np.sin(f) * fyf
+        fy = np.sin(f) * fxf + np.cos(f) * fyf
+        return simulate_deflection(fx, p.rpm, self.modes["x"]), simulate_deflection(fy, p.rpm, self.modes["y"])
+
+    # -- probing ----------------------------------------------------------------------------------
+    def probe(self, pts: np.ndarray, normals: np.ndarray, effects: dict | None = None,
+              noise_um: float = 0.0, rng: Optional[np.random.Generator] = None) -> np.ndarray:
+        """Deviation (µm, + = material left) of the machined surface at each plan point along its normal."""
+        effects = effects or {}
+        p = self.path
+        R, Z = self.R, self.flutes
+        n = normals / np.linalg.norm(normals, axis=1, keepdims=True)
+        cstar = pts + R * n
+        row, u, _ = nearest_pass(p, cstar)
+        d = p.c1 - p.c0
+        ln = p.length
+        T = 60.0 / p.rpm[row]
+        t_star = p.t0[row] + u * (p.t1[row] - p.t0[row])
+        v = ln[row] / np.maximum(p.t1[row] - p.t0[row], 1e-12)             # mm/s along the pass
+        q = np.degrees(np.arccos(np.clip(n[:, 2], -1, 1)))
+        alpha = np.arctan2(-n[:, 1], -n[:, 0])                              # azimuth of the contact point
+        feed_ang = np.arctan2(d[row, 1], d[row, 0])
+        phi_c = (alpha - feed_ang) % (2 * np.pi)                            # from the feed direction
+        zc = R * (1 - n[:, 2].clip(-1, 1))
+        lag = zc * math.tan(self.helix) / R
+        ro = effects.get("runout", {})
+        e_um, ph = float(ro.get("e_um", 0.0)), float(ro.get("phase_deg", 0.0))
+        rho = self.flute_offsets(e_um + self.base_runout, ph)
+        scale = float(effects.get("force_scale", {}).get("scale", 1.0))
+        dx_rev, dy_rev = self.deflection(e_um, ph, scale)
+        best = np.full(len(pts), np.inf)
+        theta_star = (360.0 * t_star / T) % 360.0
+        for j in range(Z):
+            # spindle angle at which flute j passes φ_C at height zc: φ = −θ − 360 j/Z + lag
+            th = np.degrees(-phi_c - 2 * np.pi * j / Z + lag) % 360.0
+            dt0 = ((th - theta_star + 180.0) % 360.0 - 180.0) / 360.0 * T
+            # deflection at that spindle angle (periodic linear interpolation)
+            fi = th / 360.0 * N_ROT
+            i0 = np.floor(fi).astype(np.int64) % N_ROT
+            w = fi - np.floor(fi)
+            i1 = (i0 + 1) % N_ROT
+            ddx = (1 - w) * dx_rev[row, i0] + w * dx_rev[row, i1]
+            ddy = (1 - w) * dy_rev[row, i0] + w * dy_rev[row, i1]
+            for m in PASSAGES:
+                t = t_star + dt0 + m * T
+                s_along = u * ln[row] + (t - t_star) * v
+                c = self._centre_at(p.s0[row] + s_along)
+                off = np.stack([ddx, ddy, np.zeros_like(ddx)], 1) * 1e-3
+                off += rho[j] * np.stack([np.cos(alpha), np.sin(alpha), np.zeros_like(alpha)], 1)
+                radius = np.full(len(pts), R)
+                off += self._machine_offsets(effects, c, row, s_along / ln[row], t)
+                radius -= self._radius_loss(effects, q, row, s_along, t) * 1e-3
+                cp = c + off - pts
+                a = np.einsum("ij,ij->i", cp, n)
+                perp2 = np.einsum("ij,ij->i", cp, cp) - a * a
+                disc = radius * radius - perp2
+                s_lo = np.where(disc >= 0, a - np.sqrt(np.maximum(disc, 0)), np.inf)
+                best = np.minimum(best, s_lo)
+        err = best * 1e3
+        if noise_um > 0:
+            rng = rng or np.random.default_rng()
+            err = err + rng.normal(0.0, noise_um, len(err))
+        return err
+
+    def _centre_at(self, s_glob):
+        """Nominal ball centre at path length ``s_glob`` along the cutting moves (continues into the
+        neighbouring passes instead of extrapolating a pass beyond its end)."""
+        p = self.path
+        i = np.clip(np.searchsorted(p.s0, s_glob, side="right") - 1, 0, len(p.s0) - 1)
+        f = np.clip((s_glob - p.s0[i]) / p.length[i], 0.0, 1.0)
+        f = np.where((i == len(p.s0) - 1) | (i == 0), (s_glob - p.s0[i]) / p.length[i], f)
+        return p.c0[i] + f[:, None] * (p.c1[i] - p.c0[i])
+
+    def _radius_loss(self, effects, q_deg, row, s_along, t):
+        """Radius smaller than nominal (µm) at contact angle q: contour error and wear."""
+        out = np.zeros(len(q_deg))
+        if "tool_contour" in effects:
+            e = effects["tool_contour"]
+            out += e["a_um"] * np.exp(-0.5 * ((q_deg - e["q0_deg"]) / e["width_deg"]) ** 2)
+        if "tool_wear" in effects:
+            L = self.path.L0[row] + np.clip(s_along, 0, None)
+            out += effects["tool_wear"]["rate_um_per_m"] * L * 1e-3
+        return out
+
+    def _machine_offsets(self, effects, c, row, frac, t):
+        """Tool offset (mm) from the machine: thermal drift, servo lag at corners, axis geometry."""
+        off = np.zeros((len(c), 3))
+        if "thermal_drift" in effects:
+            e = effects["thermal_drift"]
+            g = 1 - np.exp(-np.maximum(t, 0) / e["tau_s"])
+            off += np.stack([e["ax_um"] * g, e["ay_um"] * g, e["az_um"] * g], 1) * 1e-3
+        if "servo_corner" in effects:
+            e = effects["servo_corner"]
+            dist, ang, b = corner_features(self.path, row, np.clip(frac, 0, 1))
+            mag = e["a_um"] * np.sin(np.radians(ang) / 2) / math.sin(math.pi / 4) * np.exp(-dist / e["lambda_mm"])
+            off += b * mag[:, None] * 1e-3
+        if "machine_geometry" in effects:
+            e = effects["machine_geometry"]
+            tip = c - [0.0, 0.0, self.R]
+            x, y, z = tip[:, 0], tip[:, 1], tip[:, 2]
+            off += np.stack([e["sx"] * x + e["exy"] * y + e["exz"] * z, e["sy"] * y + e["eyz"] * z, e["sz"] * z], 1) * 1e-3
+        return off
+
+
+def grid_plan(vm: VirtualMachine, spacing_mm: float = 0.5, k: int = 12) -> tuple[np.ndarray, np.ndarray]:
+    """Probe points along the cutting passes' contact lines when no plan is given.
+
+    The surface normal is that of the ball-centre surface (the offset surface has the part's
+    normals): the smallest principal axis of the ``k`` nearest centre samples, turned up (3-axis
+    ball: the contact is on the lower half). Returns (points, normals).
+    """
+    from scipy.spatial import cKDTree
+    p = vm.path
+    ln = p.length
+    nsub = np.maximum(1, np.floor(ln / spacing_mm).astype(np.int64))
+    owner = np.repeat(np.arange(len(ln)), nsub)
+    frac = (np.arange(nsub.sum()) - np.repeat(np.cumsum(nsub) - nsub, nsub) + 0.5) / np.repeat(nsub, nsub)
+    c = p.c0[owner] + frac[:, None] * (p.c1 - p.c0)[owner]
+    dense_n = np.maximum(1, np.ceil(ln / 0.1).astype(np.int64))
+    o2 = np.repeat(np.arange(len(ln)), dense_n)
+    f2 = (np.arange(dense_n.sum()) - np.repeat(np.cumsum(dense_n) - dense_n, dense_n) + 0.5) / np.repeat(dense_n, dense_n)
+    cloud = p.c0[o2] + f2[:, None] * (p.c1 - p.c0)[o2]
+    _, nb = cKDTree(cloud).query(c, k=min(k, len(cloud)))
+    nbp = cloud[nb] - cloud[nb].mean(axis=1, keepdims=True)
+    cov = np.einsum("pki,pkj->pij", nbp, nbp)
+    _, vec = np.linalg.eigh(cov)
+    n = vec[:, :, 0]
+    n = np.where(n[:, 2:3] < 0, -n, n)
+    pts = c - vm.R * n
+    # keep points where the stock was cut (the surface exists)
+    keep = pts[:, 2] < vm.stock_h(pts[:, 0], pts[:, 1])
+    return pts[keep], n[keep]

@@ -1,0 +1,257 @@
+"""Gap diagnosis (issue 7): measurement reader errors, virtual-machine effect signatures against
+closed forms, and a small blind check.
+
+The closed forms use this file's own brute-force geometry (nearest tool-centre segment, times and
+cut lengths summed from the passes table, corners from consecutive move directions), not the code
+under test. Tolerances come from the feed-mark cusp of the discrete flutes, f²/(8R), fixed before
+running: the virtual machine cuts with tooth passages, not a continuous envelope.
+"""
+from __future__ import annotations
+
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+import yaml
+from click.testing import CliRunner
+
+from stages import InputError
+from stages.measurements import read_measurements
+from stages.parse import parse_program
+from stages.split import split_blocks
+
+ROOT = Path(__file__).resolve().parent.parent
+SAMPLE = ROOT / "data_samples" / "gap"
+TOOL = {"type": "ball", "diameter_mm": 6.0, "flutes": 2, "helix_deg": 30.0, "stickout_mm": 30.0, "runout_um": 0.0,
+        "control_point": "tip", "profile": None, "corner_radius_mm": None, "t": None}
+MAT = {"ktc": 2000, "krc": 700, "kac": 300, "kte": 20, "kre": 15, "kae": 5}
+RIGID = {"frf": {"x": [{"fn_hz": 900, "zeta": 0.03, "k_n_per_um": 1e7}], "y": [{"fn_hz": 950, "zeta": 0.03, "k_n_per_um": 1e7}]}}
+SOFT = {"frf": {"x": [{"fn_hz": 900, "zeta": 0.03, "k_n_per_um": 3.0}], "y": [{"fn_hz": 950, "zeta": 0.03, "k_n_per_um": 3.5}]}}
+R = 3.0
+FZ = 800.0 / (8000.0 * 2)                   # the sample program: F800, S8000, 2 flutes
+CUSP_UM = (2 * FZ) ** 2 / (8 * R) * 1e3     # feed-mark cusp of one flute per revolution (runout)
+TOL = 2 * CUSP_UM + 0.05
+
+
+# ------------------------------------------------------------------------------------ fixtures
+@pytest.fixture(scope="module")
+def sample():
+    path = SAMPLE / "gap_t1.nc"
+    blocks, _ = parse_program(path.read_bytes(), str(path), "gap_t1")
+    passes = split_blocks(blocks, {"split": {"chord_tol_mm": 0.001, "max_pass_mm": 5.0, "merge_max_mm": 0.001},
+                                   "machine": {"rapid_mm_min": 30000.0}, "tool": TOOL})
+    plan, rej, _ = read_measurements(SAMPLE / "plan.csv", require_deviation=False)
+    assert len(rej) == 0
+    pts = np.stack([plan.column(c).to_numpy() for c in ("x_mm", "y_mm", "z_mm")], 1)
+    nrm = np.stack([plan.column(c).to_numpy() for c in ("nx", "ny", "nz")], 1)
+    return passes, pts, nrm
+
+
+@pytest.fixture(scope="module")
+def rigid(sample):
+    from stages.virtual_machine import VirtualMachine
+    return VirtualMachine(sample[0], TOOL, MAT, RIGID, str(SAMPLE / "stock.stl"))
+
+
+@pytest.fixture(scope="module")
+def ref(sample):
+    """Brute-force association: nearest ball-centre segment of every cutting pass, and its features."""
+    passes, pts, nrm = sample
+    col = lambda c: passes.column(c).to_numpy().astype(float)  # noqa: E731
+    cut = passes.column("motion").to_numpy() != 0
+    a = np.stack([col("x0_mm"), col("y0_mm"), col("z0_mm") + R], 1)[cut]
+    b = np.stack([col("x1_mm"), col("y1_mm"), col("z1_mm") + R], 1)[cut]
+    t0, t1 = col("t_start_s")[cut], col("t_end_s")[cut]
+    ln = np.linalg.norm(b - a, axis=1)
+    keep = ln > 1e-9
+    a, b, t0, t1, ln = a[keep], b[keep], t0[keep], t1[keep], ln[keep]
+    L0 = np.concatenate([[0.0], np.cumsum(ln)[:-1]])
+    c = pts + R * nrm
+    ab = b - a
+    u = np.clip(np.einsum("pkj,kj->pk", c[:, None, :] - a[None], ab) / np.sum(ab * ab, 1), 0, 1)
+    d = np.linalg.norm(a[None] + u[..., None] * ab[None] - c[:, None, :], axis=2)
+    k = np.argmin(d, axis=1)
+    uk = u[np.arange(len(k)), k]
+    s = L0[k] + uk * ln[k]
+    # corners: touching consecutive moves turning by more than 20°
+    dirs = ab / ln[:, None]
+    ang = np.degrees(np.arccos(np.clip(np.sum(dirs[:-1] * dirs[1:], 1), -1, 1)))
+    touch = np.linalg.norm(b[:-1] - a[1:], axis=1) < 1e-6
+    ci = np.flatnonzero(touch & (ang > 20.0))
+    cs = L0[ci + 1]
+    bis = dirs[ci + 1] - dirs[ci]
+    bis /= np.linalg.norm(bis, axis=1, keepdims=True)
+    j = np.argmin(np.abs(s[:, None] - cs[None]), axis=1)
+    return {"t": t0[k] + uk * (t1[k] - t0[k]), "L": s, "tip": a[k] + uk[:, None] * ab[k] - [0, 0, R],
+            "q": np.degrees(np.arccos(nrm[:, 2])), "corner_d": np.abs(s - cs[j]), "corner_deg": ang[ci][j],
+            "corner_b": bis[j], "n": nrm}
+
+
+# ------------------------------------------------------------------------------------ reader
+def _csv(tmp_path, text, name="m.csv"):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def test_reader_mapping_units_nan_and_bad_normal_listed(tmp_path):
+    p = _csv(tmp_path, "PT;PX;PY;PZ;VI;VJ;VK;DEVI\n"
+                       "1;1.0;2.0;3.0;0;0;1;0.002\n"
+                       "2;1.0;2.0;nan;0;0;1;0.001\n"
+                       "3;1.0;2.0;3.0;0;0;1.2;0.001\n"
+                       "4;0.5;0.5;0.5;0.6;0;0.8;-0.003\n")
+    cols = {"point_id": "PT", "x_mm": "PX", "y_mm": "PY", "z_mm": "PZ", "nx": "VI", "ny": "VJ", "nz": "VK",
+            "err_um": "DEVI"}
+    tab, rej, lines = read_measurements(p, cols, length_unit="inch", deviation_unit="mm")
+    assert tab.column("point_id").to_pylist() == [1, 4]
+    assert tab.column("x_mm").to_pylist() == pytest.approx([25.4, 12.7])
+    assert tab.column("err_um").to_pylist() == pytest.approx([2.0, -3.0])
+    reasons = {pid: (line, why) for pid, line, why in rej.rows}
+    assert reasons[2][0] == 3 and "NaN" in reasons[2][1]
+    assert reasons[3][0] == 4 and "normal length 1.2" in reasons[3][1]
+
+
+@pytest.mark.parametrize("text, mapping, needle", [
+    ("id,x,y,z,i,j,k,dev\n1,0,0,0,0,0,1,1.5\n1,1,0,0,0,0,1,2.0\n", {}, "duplicated point id 1"),
+    ("id,x,y,z,i,j,k\n1,0,0,0,0,0,1\n", {}, "no column for ['err_um']"),
+    ("id,x,y,z,i,j,k,dev\n1,0,0,0,0,0,1,0.002\n2,0,1,0,0,0,1,-0.001\n", {}, "looks like mm"),
+    ("id,x,y,z,i,j,k,dev\n1,0,0,0,0,0,1,abc\n", {}, ":2: column 'dev'"),
+    ("id,x,y,z,i,j,k,dev\n1,0,0,0,0,0,1,1\n", {"err_um": "Deviation"}, "measurements.columns.err_um"),
+    ("id,x,y,z,i,j,k,dev [mm]\n1,0,0,0,0,0,1,0.001\n", {"deviation_unit": "um"}, "says mm"),
+])
+def test_reader_errors_name_file_line_and_key(tmp_path, text, mapping, needle):
+    p = _csv(tmp_path, text)
+    dev_unit = mapping.pop("deviation_unit", None)
+    with pytest.raises(InputError) as e:
+        read_measurements(p, mapping, deviation_unit=dev_unit)
+    assert needle in str(e.value) and str(p) in str(e.value)
+
+
+def test_reader_parquet_and_off_part_points_rejected(tmp_path, sample):
+    from stages.gap import associate
+    passes, pts, nrm = sample
+    n = 60
+    err = np.zeros(n)
+    moved = pts[:n].copy()
+    moved[5] += 1.0 * nrm[5]                     # 1 mm off the surface along its normal
+    moved[7] += [0.0, 0.0, -0.5]                 # inside the part
+    tab = pa.table({"point_id": pa.array(np.arange(n), pa.int64()), "x_mm": moved[:, 0], "y_mm": moved[:, 1],
+                    "z_mm": moved[:, 2], "nx": nrm[:n, 0], "ny": nrm[:n, 1], "nz": nrm[:n, 2], "err_um": err,
+                    "t_s": np.full(n, np.nan)})
+    pq.write_table(tab, tmp_path / "m.parquet")
+    back, rej, _ = read_measurements(tmp_path / "m.parquet")
+    assert back.num_rows == n and len(rej) == 0
+    F, rejected = associate(back, passes, None, TOOL)
+    assert sorted(i for i, _ in rejected) == [5, 7]
+    assert all("off the part" in why for _, why in rejected)
+    assert len(F["point_id"]) == n - 2
+
+
+# ------------------------------------------------------------------------------------ signatures
+def _diff(vm, sample, effects):
+    _, pts, nrm = sample
+    return vm.probe(pts, nrm, effects) - vm.probe(pts, nrm, {})
+
+
+def test_runout_signature_is_minus_e_sin_q(rigid, sample, ref):
+    d = _diff(rigid, sample, {"runout": {"e_um": 10.0, "phase_deg": 0.0}})
+    expect = -10.0 * np.sin(np.radians(ref["q"]))
+    assert np.max(np.abs(d - expect)) <= TOL
+
+
+def test_tool_contour_signature_is_the_profile_dent(rigid, sample, ref):
+    e = {"a_um": 6.0, "q0_deg": 30.0, "width_deg": 8.0}
+    d = _diff(rigid, sample, {"tool_contour": e})
+    expect = 6.0 * np.exp(-0.5 * ((ref["q"] - 30.0) / 8.0) ** 2)
+    assert np.max(np.abs(d - expect)) <= TOL
+
+
+def test_tool_wear_signature_grows_with_cut_length(rigid, sample, ref):
+    d = _diff(rigid, sample, {"tool_wear": {"rate_um_per_m": 40.0}})
+    assert np.max(np.abs(d - 40.0 * ref["L"] * 1e-3)) <= TOL
+
+
+def test_thermal_drift_signature_is_n_dot_a_exponential(rigid, sample, ref):
+    a = np.array([3.0, -4.0, -8.0])
+    tau = 4.0
+    d = _diff(rigid, sample, {"thermal_drift": {"ax_um": a[0], "ay_um": a[1], "az_um": a[2], "tau_s": tau}})
+    expect = (ref["n"] @ a) * (1 - np.exp(-ref["t"] / tau))
+    assert np.max(np.abs(d - expect)) <= TOL
+
+
+def test_machine_geometry_signature_is_linear_in_tip_position(rigid, sample, ref):
+    g = {"sx": 0.8, "sy": -0.5, "sz": 0.3, "exy": 0.4, "exz": -0.6, "eyz": 0.2}
+    d = _diff(rigid, sample, {"machine_geometry": g})
+    x, y, z = ref["tip"].T
+    off = np.stack([g["sx"] * x + g["exy"] * y + g["exz"] * z, g["sy"] * y + g["eyz"] * z, g["sz"] * z], 1)
+    assert np.max(np.abs(d - np.sum(off * ref["n"], 1))) <= TOL
+
+
+def test_servo_corner_signature_decays_from_the_corner(rigid, sample, ref):
+    a, lam = 10.0, 0.8
+    d = _diff(rigid, sample, {"servo_corner": {"a_um": a, "lambda_mm": lam}})
+    expect = (np.sum(ref["corner_b"] * ref["n"], 1) * a * np.sin(np.radians(ref["corner_deg"]) / 2)
+              / math.sin(math.pi / 4) * np.exp(-ref["corner_d"] / lam))
+    # the tool moves ±1 revolution (2·fz) along the path between tooth passages: exp varies by that
+    slack = 0.1 + np.abs(expect) * (math.exp(2 * FZ / lam) - 1)
+    assert np.all(np.abs(d - expect) <= TOL + slack)
+    assert np.max(np.abs(expect)) > 3.0            # the plan does reach the corners
+
+
+def test_force_scale_scales_the_deflection_part(sample):
+    from stages.virtual_machine import VirtualMachine
+    passes, pts, nrm = sample
+    soft = VirtualMachine(passes, TOOL, MAT, SOFT, str(SAMPLE / "stock.stl"))
+    stiff = VirtualMachine(passes, TOOL, MAT, RIGID, str(SAMPLE / "stock.stl"))
+    dfl = soft.probe(pts, nrm) - stiff.probe(pts, nrm)
+    assert np.percentile(np.abs(dfl), 90) > 1.0    # deflection matters on this part
+    d = soft.probe(pts, nrm, {"force_scale": {"scale": 1.6}}) - soft.probe(pts, nrm)
+    assert np.max(np.abs(d - 0.6 * dfl)) <= 2 * TOL
+
+
+def test_simulated_deflection_matches_static_compliance_for_constant_force():
+    from stages.virtual_machine import simulate_deflection
+    f = np.full((2, 96), 12.0)                      # N, constant over the revolution
+    d = simulate_deflection(f, np.array([6000.0, 9000.0]), [(900.0, 0.03, 3.0), (2000.0, 0.05, 6.0)])
+    assert np.allclose(d, 12.0 / 3.0 + 12.0 / 6.0, atol=1e-6)
+
+
+# ------------------------------------------------------------------------------------ blind check
+def test_small_blind_check_names_effects_and_none(rigid, sample):
+    """14 single cases (2 per effect, 2 none; force_scale needs a predicted deflection, absent on the
+    rigid machine) and 2 two-effect cases, prediction = the rigid machine's (zero)."""
+    from pipeline.gap import blind_cases
+    passes, pts, nrm = sample
+    kinds = ["none", "runout", "tool_contour", "tool_wear", "thermal_drift", "servo_corner", "machine_geometry"]
+    s = blind_cases(rigid, passes, None, TOOL, pts, nrm, cases=14, seed=20261123, pairs=2, kinds=kinds)
+    assert s["top1_accuracy"] >= 12 / 14
+    assert s["none_correct"] == 1.0
+    assert s["median_shrink"] >= 0.7
+    assert s["param_error"]["median"] <= 0.2
+    assert s["pair_order_ok"] == 1.0
+
+
+# ------------------------------------------------------------------------------------ CLI
+def test_cli_simulate_writes_a_measurement_file_the_reader_accepts(tmp_path):
+    from pipeline.cli import main
+    for f in ("gap_t1.nc", "stock.stl", "plan.csv"):
+        shutil.copy(SAMPLE / f, tmp_path / f)
+    wf = {"name": "g", "programs": "gap_t1.nc", "stock": "stock.stl", "tool": {k: v for k, v in TOOL.items()
+                                                                              if k not in ("t", "corner_radius_mm", "profile")},
+          "material": dict(MAT, name="FCD550"), "machine": RIGID, "measurements": "plan.csv", "output": "out",
+          "until": "split"}
+    (tmp_path / "wf.yaml").write_text(yaml.safe_dump(wf))
+    r = CliRunner().invoke(main, ["simulate", str(tmp_path / "wf.yaml"), "--effect", "runout:e_um=8",
+                                  "--noise-um", "0", "--out", str(tmp_path / "m.csv")], catch_exceptions=False)
+    assert r.exit_code == 0, r.output
+    tab, rej, _ = read_measurements(tmp_path / "m.csv")
+    n = np.stack([tab.column(c).to_numpy() for c in ("nx", "ny", "nz")], 1)
+    expect = -8.0 * np.sqrt(1 - n[:, 2] ** 2)
+    assert len(rej) == 0 and np.max(np.abs(tab.column("err_um").to_numpy() - expect)) <= TOL
+    r = CliRunner().invoke(main, ["simulate", str(tmp_path / "wf.yaml"), "--effect", "spindle:x=1",
+                                  "--out", str(tmp_path / "m2.csv")])
+    assert r.exit_code == 2 and "unknown effect 'spindle'" in r.output
