@@ -238,23 +238,23 @@ def random_case(rng, kind: str, ctx: dict) -> dict:
     sgn = lambda: rng.choice([-1.0, 1.0])
     if kind == "runout":
         # eccentricity within 45° of a flute (else with 2 flutes no flute stands out): e_eff ≥ e·cos 45°
-        return {"e_um": rng.uniform(3, 12), "phase_deg": rng.uniform(-45, 45) + 360.0 / _FLUTES["n"] * rng.integers(_FLUTES["n"])}
+        return {"e_um": rng.uniform(4, 15), "phase_deg": rng.uniform(-45, 45) + 360.0 / _FLUTES["n"] * rng.integers(_FLUTES["n"])}
     if kind == "tool_contour":
-        return {"a_um": sgn() * rng.uniform(3, 10), "q0_deg": rng.uniform(0.2 * qmax, 0.8 * qmax),
+        return {"a_um": sgn() * rng.uniform(4, 12), "q0_deg": rng.uniform(0.2 * qmax, 0.8 * qmax),
                 "width_deg": rng.uniform(5, 15)}
     if kind == "tool_wear":
-        return {"rate_um_per_m": rng.uniform(4, 12) * 1000.0 / max(ctx["cut_len_mm"], 1e-6)}   # 4-12 µm at the end
+        return {"rate_um_per_m": rng.uniform(5, 15) * 1000.0 / max(ctx["cut_len_mm"], 1e-6)}   # 5-15 µm at the end
     if kind == "thermal_drift":
         a = rng.normal(size=3)
-        a = a / np.linalg.norm(a) * rng.uniform(5, 15)
+        a = a / np.linalg.norm(a) * rng.uniform(8, 25)
         return {"ax_um": a[0], "ay_um": a[1], "az_um": a[2], "tau_s": T * rng.uniform(0.1, 1.0)}
     if kind == "force_scale":
-        return {"scale": float(np.exp(rng.uniform(math.log(1.5), math.log(2.5)) * sgn()))}
+        return {"scale": float(np.exp(rng.uniform(math.log(2.0), math.log(3.5)) * sgn()))}
     if kind == "servo_corner":
-        return {"a_um": sgn() * rng.uniform(5, 15), "lambda_mm": rng.uniform(0.3, 1.5)}
+        return {"a_um": sgn() * rng.uniform(10, 30), "lambda_mm": rng.uniform(0.3, 1.5)}
     if kind == "machine_geometry":
         v = rng.normal(size=6)
-        v = v / np.linalg.norm(v) * rng.uniform(1.0, 2.5) * 5.0 / max(ctx["size_mm"], 1e-6)   # 5-12 µm over the part
+        v = v / np.linalg.norm(v) * rng.uniform(8.0, 20.0) / max(ctx["size_mm"], 1e-6)   # 8-20 µm over the part
         return dict(zip(("sx", "sy", "sz", "exy", "exz", "eyz"), map(float, v)))
     raise ValueError(kind)
 

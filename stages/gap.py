@@ -264,24 +264,48 @@ def _lstsq(X, y, nonneg_first=False):
 
 
 def fit_effects(F, y, train, chosen: list, cand: Effect):
-    """Fit ``chosen`` (fixed nonlinear params) + ``cand`` on ``train``: best grid value, betas."""
-    base = [e.basis(F, th) for e, th in chosen]
+    """Fit ``chosen`` (fixed nonlinear params) + ``cand`` on ``train``: best grid value, betas.
+
+    Grid search over the candidate's nonlinear parameters, then one coordinate-wise refinement
+    between the best value's grid neighbours (9 values per parameter). Linear parameters by least
+    squares (normal equations); runout and wear are constrained to be ≥ 0.
+    """
+    base = np.hstack([e.basis(F, th) for e, th in chosen])[train] if chosen else np.zeros((int(train.sum()), 0))
+    yt = y[train]
+    Gbb = base.T @ base
+    gb = base.T @ yt
+    yy = float(yt @ yt)
+
+    def solve(th):
+        Xc = cand.basis(F, th)[train]
+        G = np.block([[Gbb, base.T @ Xc], [Xc.T @ base, Xc.T @ Xc]])
+        g = np.concatenate([gb, Xc.T @ yt])
+        beta = np.linalg.lstsq(G, g, rcond=None)[0]
+        if cand.name in NONNEG and beta[-1] < 0:
+            beta = np.concatenate([np.linalg.lstsq(Gbb, gb, rcond=None)[0] if len(gb) else np.zeros(0), [0.0]])
+        sse = yy - 2 * beta @ g + beta @ G @ beta
+        return float(sse), beta
+
     best = None
     for th in cand.grid:
-        Xc = cand.basis(F, th)
-        X = np.hstack(base + [Xc]) if base else Xc
-        Xt, yt = X[train], y[train]
-        beta, *_ = np.linalg.lstsq(Xt, yt, rcond=None)
-        if cand.name in NONNEG and beta[-1] < 0:
-            # constrained: the effect cannot be negative; refit with it at zero
-            if base:
-                b0, *_ = np.linalg.lstsq(np.hstack(base)[train], yt, rcond=None)
-                beta = np.concatenate([b0, [0.0]])
-            else:
-                beta = np.zeros(X.shape[1])
-        sse = float(np.sum((yt - Xt @ beta) ** 2))
+        sse, beta = solve(th)
         if best is None or sse < best[0]:
             best = (sse, th, beta)
+    if best[1]:
+        th = list(best[1])
+        for d in range(len(th)):
+            vals = np.unique([g[d] for g in cand.grid])
+            i = int(np.searchsorted(vals, th[d]))
+            lo, hi = vals[max(i - 1, 0)], vals[min(i + 1, len(vals) - 1)]
+            if hi <= lo:
+                continue
+            fine = np.geomspace(lo, hi, 9) if lo > 0 else np.linspace(lo, hi, 9)
+            for v in fine:
+                trial = tuple(th[:d] + [float(v)] + th[d + 1:])
+                sse, beta = solve(trial)
+                if sse < best[0]:
+                    best = (sse, trial, beta)
+            th = list(best[1])
     return best[1], best[2]
 
 
@@ -371,7 +395,10 @@ def diagnose(F: dict, noise_um: Optional[float] = None, floor_um: float = 0.0) -
             thr = float(chi2.ppf(1 - ALPHA, eff.n_params))
             # practical size: the held-out RMS the effect explains must reach half the noise level
             # (probe noise and, when known, the model's own floor on a reference part)
-            explained = math.sqrt(max(sse_base - sse, 0.0) / n)
+            # measured where the effect acts (its held-out prediction beyond a tenth of its peak)
+            delta = pred - base_pred
+            support = max(int(np.sum(np.abs(delta) > 0.1 * np.abs(delta).max())) if np.any(delta) else n, 1)
+            explained = math.sqrt(max(sse_base - sse, 0.0) / support)
             big = explained >= 0.5 * math.hypot(sigma, floor_um)
             rows.append({"effect": eff.name, "sse": sse, "gain": gain, "threshold": thr, "eff": eff, "pred": pred,
                          "explained_um": explained, "big": big})
@@ -381,6 +408,15 @@ def diagnose(F: dict, noise_um: Optional[float] = None, floor_um: float = 0.0) -
         if first_round is None:
             first_round = rows
         top = rows[0]
+        # parsimony: a simpler significant effect whose held-out gain is within the χ² margin of the
+        # best one's extra parameters is preferred (the richer model is not significantly better)
+        for r in sorted(rows, key=lambda r: r["eff"].n_params):
+            dp = top["eff"].n_params - r["eff"].n_params
+            if dp <= 0 or not (r["gain"] > r["threshold"] and r["big"]):
+                continue
+            if top["gain"] - r["gain"] < float(chi2.ppf(1 - ALPHA, dp)):
+                top = r
+                break
         if not (top["gain"] > top["threshold"] and top["big"]):
             break
         th, _ = fit_effects(F, y, np.ones(n, bool), chosen, top["eff"])
