@@ -358,6 +358,9 @@ def blind_cases(vm, passes: pa.Table, errors: Optional[pa.Table], tool: dict, pt
                    "reference_noise_um": ref_sigma, "noise_est_um": sig0}
     for ci, kinds_i in enumerate(plan_cases):
         truth = {k: random_case(rng, k, ctx) for k in kinds_i if k != "none"}
+        if len(truth) == 2:
+            # an order of size must exist: the second effect is rescaled to 30-60 % of the first's RMS
+            truth = _distinct_sizes(truth, vm, pts, nrm, float(rng.uniform(0.3, 0.6)))
         sigma = float(rng.uniform(*noise))
         err = vm.probe(pts, nrm, truth, sigma, rng)
         F, rej = associate(_meas_table(ids, pts, nrm, err), passes, errors, tool, off_part_mm, deflection)
@@ -400,6 +403,30 @@ def blind_cases(vm, passes: pa.Table, errors: Optional[pa.Table], tool: dict, pt
         "cases_detail": results,
     }
     return summary
+
+
+_AMPLITUDES = {"runout": ("e_um",), "tool_contour": ("a_um",), "tool_wear": ("rate_um_per_m",),
+               "thermal_drift": ("ax_um", "ay_um", "az_um"), "servo_corner": ("a_um",),
+               "machine_geometry": ("sx", "sy", "sz", "exy", "exz", "eyz")}
+
+
+def _scaled(name: str, params: dict, k: float) -> dict:
+    out = dict(params)
+    if name == "force_scale":
+        out["scale"] = 1.0 + k * (params["scale"] - 1.0)
+    else:
+        for a in _AMPLITUDES[name]:
+            out[a] = params[a] * k
+    return out
+
+
+def _distinct_sizes(truth: dict, vm, pts, nrm, ratio: float) -> dict:
+    base = vm.probe(pts, nrm, {}, 0.0)
+    size = {k: float(np.sqrt(np.mean((vm.probe(pts, nrm, {k: v}, 0.0) - base) ** 2))) for k, v in truth.items()}
+    first, second = list(truth)
+    if size[second] <= 0 or size[first] <= 0:
+        return truth
+    return {first: truth[first], second: _scaled(second, truth[second], ratio * size[first] / size[second])}
 
 
 def _meas_table(ids, pts, nrm, err) -> pa.Table:

@@ -423,6 +423,26 @@ def diagnose(F: dict, noise_um: Optional[float] = None, floor_um: float = 0.0) -
         chosen.append((top["eff"], th))
         sse_base = top["sse"]
         base_pred = top["pred"]
+    # one swap pass: an effect picked early may have soaked up part of a later one; replace each
+    # chosen effect by each other candidate when that fits the held-out blocks significantly better,
+    # or equally well (within the χ² margin) with fewer parameters
+    if len(chosen) >= 2:
+        for i in range(len(chosen)):
+            rest = chosen[:i] + chosen[i + 1:]
+            cur_p = chosen[i][0].n_params
+            for eff in cat:
+                if any(e.name == eff.name for e, _ in chosen):
+                    continue
+                pred = cv_predict(F, y, fold, rest, eff)
+                sse = float(np.sum((y - pred) ** 2))
+                dp = eff.n_params - cur_p
+                margin = float(chi2.ppf(1 - ALPHA, abs(dp))) * sigma ** 2 if dp else 0.0
+                better = sse < sse_base - margin if dp > 0 else sse < sse_base + margin
+                if better:
+                    th, _ = fit_effects(F, y, np.ones(n, bool), rest, eff)
+                    chosen = rest[:i] + [(eff, th)] + rest[i:]
+                    sse_base, base_pred = sse, pred
+                    break
     # final fit on all points: parameters and each effect's contribution
     params, contrib = {}, {}
     if chosen:
