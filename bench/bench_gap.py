@@ -1,0 +1,59 @@
+"""Benchmark: diagnosing 100,000 measured points (issue 7 Must show: ≤ 2 min on this machine).
+
+The gap sample job (``workflows/gap.yaml``; its prediction comes from the engine's cache, run it
+once first) is probed by the virtual machine at ~100,000 plan points (contact points at 300
+fractions of every cutting chord, from ``scripts/make_gap_samples.py``) with thermal drift and
+0.5 µm noise; the timed part is what ``pipeline diagnose`` does after reading the file:
+association + features, the held-out effect ranking with the greedy/swap selection, the where-map.
+
+    python bench/bench_gap.py [--points 100000]
+"""
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--points", type=int, default=100_000)
+    args = ap.parse_args()
+    from pipeline.config import load_workflow
+    from pipeline.gap import _meas_table, diagnose_points, run_tables
+    from stages.gap import associate
+    from stages.virtual_machine import VirtualMachine
+    spec = importlib.util.spec_from_file_location("mk", ROOT / "scripts" / "make_gap_samples.py")
+    mk = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mk)
+    wf_path = str(ROOT / "workflows" / "gap.yaml")
+    wf, _ = load_workflow(wf_path)
+    tabs, _, run = run_tables(wf_path, "errors")
+    tool = wf.tool.model_dump()
+    n_chords = sum(len(r) for r in mk.contact_points()) - 1
+    k = int(np.ceil(args.points / (0.6 * n_chords)))        # ~68 % survive the envelope filter
+    plan = mk.plan_rows(mk.contact_points(), fractions=tuple(np.linspace(0.02, 0.98, k)))[: args.points]
+    pts, nrm = plan[:, :3], plan[:, 3:]
+    vm = VirtualMachine(tabs["passes"], tool, wf.material.model_dump(), wf.machine.model_dump(), run._static["stock"][0])
+    effect = {"thermal_drift": {"ax_um": 3.0, "ay_um": -4.0, "az_um": -12.0, "tau_s": 5.0}}
+    err = vm.probe(pts, nrm, effect, 0.5, np.random.default_rng(1))
+    meas = _meas_table(np.arange(len(pts)), pts, nrm, err)
+    t0 = time.perf_counter()
+    F, rej = associate(meas, tabs["passes"], tabs.get("errors"), tool, 0.05, tabs.get("deflection"))
+    t1 = time.perf_counter()
+    res = diagnose_points(F, None)
+    t2 = time.perf_counter()
+    out = {"points": int(len(pts)), "passes": int(tabs["passes"].num_rows), "rejected": len(rej),
+           "associate_s": round(t1 - t0, 2), "diagnose_s": round(t2 - t1, 2), "total_s": round(t2 - t0, 2),
+           "effect": res["effect"], "effects": res["effects"], "shrink": round(res["shrink"], 3)}
+    print(json.dumps(out, indent=2))
+
+
+if __name__ == "__main__":
+    main()
