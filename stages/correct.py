@@ -244,10 +244,12 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
         orig = _xyz(previous, ("x_mm", "y_mm", "z_mm"))
         iteration = int(_col(previous, "iteration", np.int64).max()) + 1
         prev_n = _xyz(previous, ("nx", "ny", "nz"))
+        last = _xyz(previous, ("x_new_mm", "y_new_mm", "z_new_mm"))   # the change is against these
     else:
         orig = end.copy()
         iteration = 1
         prev_n = np.full((nb, 3), np.nan)
+        last = end
     total_um = (end - orig) * 1000.0 + move
     size = np.linalg.norm(total_um, axis=1)
     clipped = size > max_move * (1 + 1e-12)
@@ -264,7 +266,7 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
         new[full] = new[src[full]]
         total_um[full] = (new[full] - orig[full]) * 1000.0
         clipped[full] = clipped[src[full]]
-    change_um = np.linalg.norm((new - end) * 1000.0, axis=1)
+    change_um = np.linalg.norm((new - last) * 1000.0, axis=1)
 
     vlen = np.linalg.norm(vnormal, axis=1)
     vn = np.where(vlen[:, None] > 1e-12, vnormal / np.where(vlen > 1e-12, vlen, 1.0)[:, None], np.nan)
@@ -322,7 +324,7 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
                 centre[~follow] = keep_c[~follow]
         total_um = (new - orig) * 1000.0
         clipped |= np.linalg.norm(total_um, axis=1) > max_move * (1 + 1e-9)
-        change_um = np.linalg.norm((new - end) * 1000.0, axis=1)
+        change_um = np.linalg.norm((new - last) * 1000.0, axis=1)
 
     return pa.table({
         "program_id": program_id,
@@ -515,6 +517,56 @@ def correct_iteratively(blocks: pa.Table, predict, params: dict, on_round=None) 
     return corrected
 
 
+def errors_on_passes(errors: pa.Table, passes_from: pa.Table, passes_to: pa.Table) -> pa.Table:
+    """Re-key an ``errors`` table from one split of a program to another split of the same blocks.
+
+    A corrected program is split again for its prediction; its passes usually match the original's
+    one to one (same ``block_no``/``block_end``), and then the table is returned as it is. Where
+    the splitter merged or split differently, each error row goes to the pass of ``passes_to`` in
+    the same block whose midpoint is nearest to the midpoint of its own pass; rows without such a
+    pass are dropped.
+    """
+    if errors.num_rows == 0:
+        return errors
+    def sig(p):
+        return (_col(p, "pass_id", np.int64), _col(p, "block_no", np.int64), _col(p, "block_end", np.int64))
+    a, b = sig(passes_from.sort_by("pass_id")), sig(passes_to.sort_by("pass_id"))
+    if a[0].size == b[0].size and all(np.array_equal(x, y) for x, y in zip(a, b)):
+        return errors
+    from scipy.spatial import cKDTree
+    mid = lambda p: (_xyz(p, ("x0_mm", "y0_mm", "z0_mm")) + _xyz(p, ("x1_mm", "y1_mm", "z1_mm"))) / 2  # noqa: E731
+    pf, pt = passes_from.sort_by("pass_id"), passes_to.sort_by("pass_id")
+    eid = _col(errors, "pass_id", np.int64)
+    row = np.searchsorted(a[0], eid)
+    row = np.minimum(row, a[0].size - 1)
+    ok = a[0][row] == eid
+    k = min(8, pt.num_rows)
+    dist, idx = cKDTree(mid(pt)).query(mid(pf)[row], k=k)
+    idx = idx.reshape(row.size, k)
+    same = b[1][idx] == a[1][row][:, None]
+    first = np.argmax(same, axis=1)
+    ok &= same[np.arange(row.size), first]
+    target = b[0][idx[np.arange(row.size), first]]
+    out = errors.filter(pa.array(ok))
+    return out.set_column(out.schema.get_field_index("pass_id"), "pass_id",
+                          pa.array(target[ok], out.schema.field("pass_id").type))
+
+
 def run(inputs: dict, params: dict) -> dict[str, pa.Table]:
-    """One correction round on the predicted errors (the engine or an outer loop iterates)."""
-    return {"corrected": correct_once(inputs["blocks"], inputs["passes"], inputs["errors"], params)}
+    """One correction round on the predicted errors (the engine iterates, ``pipeline/iterate.py``).
+
+    Round 1: ``blocks``, ``passes`` and ``errors`` of the program. Later rounds (seed 003, DESIGN §7)
+    also get ``corrected`` (the previous round's table) and ``round_passes``: the passes of the
+    corrected program the chain predicted ``errors`` on. Those errors are, like every prediction,
+    relative to the path they were predicted for; the machined surface of path P is P + e(P)·n, so
+    the command that leaves the original surface is the fixed point P = P0 − e(P)·n: each round
+    applies the move for the newly predicted errors to the ORIGINAL program (``blocks`` and
+    ``passes`` stay the original ones) instead of adding it to the previous moves.
+    (:func:`correct_iteratively` is the other case: its errors are measured against the original
+    surface, residuals, and its moves accumulate.)
+    """
+    errors = inputs["errors"]
+    if inputs.get("round_passes") is not None:
+        errors = errors_on_passes(errors, inputs["round_passes"], inputs["passes"])
+    return {"corrected": correct_once(inputs["blocks"], inputs["passes"], errors, params,
+                                      previous=inputs.get("corrected"))}
