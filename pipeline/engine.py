@@ -232,6 +232,18 @@ class Run:
                 self._after_stage(stage, failures)
                 rep.wall_s = time.perf_counter() - t0
                 reports.append(rep)
+            if any(s.NAME == "correct" for s in self.stages):   # rounds 2… of predict → correct
+                from pipeline.iterate import iterate_corrections
+                holder = [client]
+
+                def get_client():
+                    if holder[0] is None:
+                        holder[0] = _connect(scheduler, workers)
+                    return holder[0]
+                try:
+                    self.correct_rounds = iterate_corrections(self, get_client, reports, failures, progress)
+                finally:
+                    client = holder[0]
         finally:
             if client is not None:
                 _close(client)
@@ -256,6 +268,7 @@ class Run:
                                  "traceback": traceback.format_exc()})
         summary = self.summary(reports, failures, tables, time.perf_counter() - t_run)
         summary["report"] = str(report) if report else None
+        summary["correct_rounds"] = getattr(self, "correct_rounds", None)
         (self.out / "run.json").write_text(json.dumps(summary, indent=2, default=str))
         return summary
 
