@@ -81,6 +81,41 @@ def tool_profile(images, um_per_px, diameter_mm, tool_type, corner_radius_mm, cu
     click.echo(f"{res.get('n_images')} images; eccentricity {ecc} um; wrote {out} (+ .json, .png)")
 
 
+@main.command("tool-wear")
+@click.option("--before", "before", required=True, type=click.Path(dir_okay=False),
+              help="Tool-profile CSV measured before the job (contact_deg, error_um).")
+@click.option("--after", "after", required=True, type=click.Path(dir_okay=False),
+              help="Tool-profile CSV of the same tool after the job, in the same frame (--centre-z-px).")
+@click.option("--run", "run_dir", type=click.Path(file_okay=False), help="Run directory: cut length from its tables.")
+@click.option("--program", "programs", multiple=True, help="With --run: only these program ids (repeatable).")
+@click.option("--tool", "tool", type=int, help="With --run: only passes of this T number.")
+@click.option("--cut-length-m", type=float, help="Cutting length of the job, metres (instead of --run).")
+@click.option("--tool-id", help="Name of the tool in the table (default: the after file's stem).")
+@click.option("--out", "out", required=True, type=click.Path(dir_okay=False), help="Parquet file to write.")
+def tool_wear(before, after, run_dir, programs, tool, cut_length_m, tool_id, out):
+    """Wear per contact angle and wear rate per metre of cut, as a Parquet table (schema tool_wear)."""
+    from pipeline.tool_wear import wear_table, write_wear
+    if run_dir is None and cut_length_m is None:
+        click.echo("error: give --run RUN_DIR or --cut-length-m X (the wear rate needs the cut length)", err=True)
+        sys.exit(2)
+    if (programs or tool is not None) and run_dir is None:
+        click.echo("error: --program and --tool select passes of a run; they need --run", err=True)
+        sys.exit(2)
+    try:
+        t = wear_table(before, after, cut_length_m=cut_length_m, run_dir=run_dir, programs=list(programs) or None,
+                       tool=tool, tool_id=tool_id)
+    except InputError as e:
+        click.echo(f"error: {e}", err=True)
+        sys.exit(2)
+    write_wear(t, out)
+    w = t.column("wear_um").to_numpy()
+    q = t.column("contact_deg").to_numpy()
+    k = int(abs(w).argmax())
+    L = t.column("cut_length_m")[0].as_py()
+    click.echo(f"{t.num_rows} contact angles; largest wear {w[k]:+.2f} um at {q[k]:.1f} deg; cut length "
+               f"{L:.3f} m ({t.column('cut_length_source')[0].as_py()}); wrote {out}")
+
+
 @main.command("calibrate-forces")
 @click.argument("workflow", type=click.Path(dir_okay=False))
 @click.option("--cuts", required=True, type=click.Path(exists=True, dir_okay=False),
