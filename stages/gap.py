@@ -443,6 +443,29 @@ def diagnose(F: dict, noise_um: Optional[float] = None, floor_um: float = 0.0) -
                     chosen = rest[:i] + [(eff, th)] + rest[i:]
                     sse_base, base_pred = sse, pred
                     break
+    # backward check: every kept effect must still pay for itself given the others (χ² and size),
+    # and its unique held-out contribution sets the order of size
+    unique = {}
+    while chosen:
+        drops = []
+        for i, (e, _) in enumerate(chosen):
+            rest = chosen[:i] + chosen[i + 1:]
+            pred = cv_predict(F, y, fold, rest) if rest else np.zeros(n)
+            d_sse = float(np.sum((y - pred) ** 2)) - sse_base
+            delta = base_pred - pred
+            support = max(int(np.sum(np.abs(delta) > 0.1 * np.abs(delta).max())) if np.any(delta) else n, 1)
+            ok = (d_sse / sigma ** 2 > float(chi2.ppf(1 - ALPHA, e.n_params))
+                  and math.sqrt(max(d_sse, 0.0) / support) >= 0.5 * math.hypot(sigma, floor_um))
+            drops.append((d_sse, i, ok, pred))
+            unique[e.name] = math.sqrt(max(d_sse, 0.0) / n)
+        weak = [d for d in drops if not d[2]]
+        if not weak:
+            break
+        d_sse, i, _, pred = min(weak)
+        unique.pop(chosen[i][0].name, None)
+        chosen = chosen[:i] + chosen[i + 1:]
+        sse_base += d_sse
+        base_pred = pred
     # final fit on all points: parameters and each effect's contribution
     params, contrib = {}, {}
     if chosen:
@@ -454,7 +477,7 @@ def diagnose(F: dict, noise_um: Optional[float] = None, floor_um: float = 0.0) -
             params[e.name] = e.params(b, t)
             contrib[e.name] = e.basis(F, t) @ b
             k += e.n_lin
-    order = sorted(contrib, key=lambda nme: -float(np.sqrt(np.mean(contrib[nme] ** 2))))
+    order = sorted(contrib, key=lambda nme: -unique.get(nme, float(np.sqrt(np.mean(contrib[nme] ** 2)))))
     after = y - base_pred
     rms_b, rms_a = _rms(y), _rms(after)
     for i, r in enumerate(first_round or []):
