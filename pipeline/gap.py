@@ -254,8 +254,12 @@ def random_case(rng, kind: str, ctx: dict) -> dict:
         return {"a_um": sgn() * rng.uniform(10, 30), "lambda_mm": rng.uniform(0.3, 1.5)}
     if kind == "machine_geometry":
         v = rng.normal(size=6)
-        v = v / np.linalg.norm(v) * rng.uniform(8.0, 20.0) / max(ctx["size_mm"], 1e-6)   # 8-20 µm over the part
-        return dict(zip(("sx", "sy", "sz", "exy", "exz", "eyz"), map(float, v)))
+        g = dict(zip(("sx", "sy", "sz", "exy", "exz", "eyz"), map(float, v)))
+        tip = ctx["tips"]
+        disp = np.stack([g["sx"] * tip[:, 0] + g["exy"] * tip[:, 1] + g["exz"] * tip[:, 2],
+                         g["sy"] * tip[:, 1] + g["eyz"] * tip[:, 2], g["sz"] * tip[:, 2]], 1)
+        k = rng.uniform(8.0, 20.0) / max(float(np.linalg.norm(disp, axis=1).max()), 1e-9)  # 8-20 µm largest offset
+        return {key: val * k for key, val in g.items()}
     raise ValueError(kind)
 
 
@@ -352,7 +356,7 @@ def blind_cases(vm, passes: pa.Table, errors: Optional[pa.Table], tool: dict, pt
     q = np.degrees(np.arccos(np.clip(nrm[:, 2], -1, 1)))
     ctx = {"duration_s": float(p.t1.max()), "q_max_deg": float(np.percentile(q, 98)),
            "cut_len_mm": float(p.L0[-1] + p.length[-1]),
-           "size_mm": float(np.ptp(pts, axis=0).max())}
+           "size_mm": float(np.ptp(pts, axis=0).max()), "tips": pts + vm.R * nrm - [0.0, 0.0, vm.R]}
     kinds = kinds or ["none"] + list(EFFECTS)
     rng = np.random.default_rng(seed)
     plan_cases = [[kinds[i % len(kinds)]] for i in range(cases)]
