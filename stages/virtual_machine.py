@@ -261,45 +261,46 @@ class VirtualMachine:
                   - np.arccos(np.clip(1 - (zc - 0.5 * R / N_Z) / R, -1, 1)))
         return zc, kappa, ds
 
-    def _engagement(self):
-        p = self.path
-        zc, kappa, _ = self._edge_grid()
-        phi = (np.arange(N_PHI) + 0.5) * 2 * np.pi / N_PHI              # from the feed direction, CCW
-        mid = 0.5 * (p.c0 + p.c1)
-        d = p.c1 - p.c0
-        fdeg = np.arctan2(d[:, 1], d[:, 0])
-        ang = fdeg[:, None, None] + phi[None, None, :]                   # machine azimuth
-        rr = self.R * np.sin(kappa)[None, :, None]
-        pts = np.stack(np.broadcast_arrays(mid[:, None, None, 0] + rr * np.cos(ang),
-                                           mid[:, None, None, 1] + rr * np.sin(ang),
-                                           mid[:, None, None, 2] - self.R * np.cos(kappa)[None, :, None]), -1)
-        P = len(mid)
-        flat = pts.reshape(-1, 3)
-        owner = np.repeat(np.arange(P), N_Z * N_PHI)
-        inside = flat[:, 2] < self.stock_h(flat[:, 0], flat[:, 1]) - 1e-9
-        # removed by an earlier pass: exact distance to the candidate earlier passes' centre segments
+    def _engagement(self, chunk: int = 256):
+        """Engaged micro-edges (P, N_Z, N_PHI) at each pass's mid point; memory bounded by ``chunk``."""
         from scipy.spatial import cKDTree
+        p = self.path
+        _, kappa, _ = self._edge_grid()
+        phi = (np.arange(N_PHI) + 0.5) * 2 * np.pi / N_PHI              # from the feed direction, CCW
+        d = p.c1 - p.c0
+        P = len(d)
         ln = p.length
         nsub = np.maximum(1, np.ceil(ln / 0.25).astype(np.int64))
         sub_owner = np.repeat(np.arange(P), nsub)
         frac = (np.arange(nsub.sum()) - np.repeat(np.cumsum(nsub) - nsub, nsub) + 0.5) / np.repeat(nsub, nsub)
-        mids = p.c0[sub_owner] + frac[:, None] * d[sub_owner]
-        tree = cKDTree(mids)
-        removed = np.zeros(len(flat), bool)
-        cand_idx = np.flatnonzero(inside)
-        if cand_idx.size:
-            reach = self.R + 0.5 * float((ln / nsub).max()) + 1e-6
-            sdm = tree.sparse_distance_matrix(cKDTree(flat[cand_idx]), reach, output_type="ndarray")
-            sj, pi = sdm["i"].astype(np.int64), cand_idx[sdm["j"]]
-            prev = sub_owner[sj]
-            ok = prev < owner[pi]
-            pi, prev = pi[ok], prev[ok]
-            a, ab = p.c0[prev], d[prev]
-            u = np.clip(np.einsum("ij,ij->i", flat[pi] - a, ab) / np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-30), 0, 1)
-            dist = np.linalg.norm(a + u[:, None] * ab - flat[pi], axis=1)
-            hit = dist < self.R - 1e-6
-            removed[pi[hit]] = True
-        eng = (inside & ~removed).reshape(P, N_Z, N_PHI)
+        tree = cKDTree(p.c0[sub_owner] + frac[:, None] * d[sub_owner])
+        reach = self.R + 0.5 * float((ln / nsub).max()) + 1e-6
+        eng = np.zeros((P, N_Z, N_PHI), bool)
+        rr = self.R * np.sin(kappa)[None, :, None]
+        for s0 in range(0, P, chunk):
+            sl = slice(s0, min(s0 + chunk, P))
+            mid = 0.5 * (p.c0[sl] + p.c1[sl])
+            ang = np.arctan2(d[sl, 1], d[sl, 0])[:, None, None] + phi[None, None, :]   # machine azimuth
+            pts = np.stack(np.broadcast_arrays(mid[:, None, None, 0] + rr * np.cos(ang),
+                                               mid[:, None, None, 1] + rr * np.sin(ang),
+                                               mid[:, None, None, 2] - self.R * np.cos(kappa)[None, :, None]), -1)
+            flat = pts.reshape(-1, 3)
+            owner = np.repeat(np.arange(sl.start, sl.stop), N_Z * N_PHI)
+            inside = flat[:, 2] < self.stock_h(flat[:, 0], flat[:, 1]) - 1e-9
+            removed = np.zeros(len(flat), bool)
+            cand_idx = np.flatnonzero(inside)
+            if cand_idx.size:
+                # removed by an earlier pass: exact distance to the candidate passes' centre segments
+                sdm = tree.sparse_distance_matrix(cKDTree(flat[cand_idx]), reach, output_type="ndarray")
+                sj, pi = sdm["i"].astype(np.int64), cand_idx[sdm["j"]]
+                prev = sub_owner[sj]
+                ok = prev < owner[pi]
+                pi, prev = pi[ok], prev[ok]
+                a, ab = p.c0[prev], d[prev]
+                u = np.clip(np.einsum("ij,ij->i", flat[pi] - a, ab) / np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-30), 0, 1)
+                dist = np.linalg.norm(a + u[:, None] * ab - flat[pi], axis=1)
+                removed[pi[dist < self.R - 1e-6]] = True
+            eng[sl] = (inside & ~removed).reshape(-1, N_Z, N_PHI)
         return eng
 
     # -- forces and deflection --------------------------------------------------------------------
@@ -324,16 +325,27 @@ class VirtualMachine:
         # position angle from the feed direction of flute j, level l at spindle angle θ (clockwise spindle)
         phi = (-theta[:, None, None] - 2 * np.pi * np.arange(Z)[None, :, None] / Z + lag[None, None, :]) % (2 * np.pi)
         rho = self.flute_offsets(e_um + self.base_runout, phase_deg)
-        fz = p.feed / (p.rpm * Z)                                            # (P,)
         cphi, sphi = np.cos(phi), np.sin(phi)
+        ibin = np.minimum((phi / (2 * np.pi) * N_PHI).astype(np.int64), N_PHI - 1)
+        P = len(p.feed)
+        fx, fy = np.zeros((P, N_ROT)), np.zeros((P, N_ROT))
+        for s0 in range(0, P, 256):                              # memory bounded by the chunk
+            sl = slice(s0, min(s0 + 256, P))
+            fx[sl], fy[sl] = self._forces(sl, cphi, sphi, ibin, rho, kappa, ds)
+        return simulate_deflection(fx, p.rpm, self.modes["x"]), simulate_deflection(fy, p.rpm, self.modes["y"])
+
+    def _forces(self, sl, cphi, sphi, ibin, rho, kappa, ds):
+        """Machine-frame (fx, fy) on the tool over one revolution for the passes in ``sl``."""
+        p = self.path
+        Z = self.flutes
+        fz = p.feed[sl] / (p.rpm[sl] * Z)                                    # (P,)
         best = None
         for m in range(1, Z + 1):
             delta = rho - rho[(np.arange(Z) + m) % Z]
             cand = m * fz[:, None, None, None] * cphi[None] + delta[None, None, :, None]
             best = cand if best is None else np.minimum(best, cand)
         h = np.maximum(best, 0.0) * np.sin(kappa)                            # (P, rot, Z, N_Z)
-        ibin = np.minimum((phi / (2 * np.pi) * N_PHI).astype(np.int64), N_PHI - 1)
-        eng = self._engaged[:, np.arange(N_Z)[None, None, :], ibin]           # (P, rot, Z, N_Z)
+        eng = self._engaged[sl][:, np.arange(N_Z)[None, None, :], ibin]       # (P, rot, Z, N_Z)
         cut = eng & (h > 1e-12)
         c = self.coeffs
         ft = (c["ktc"] * h * ds + c["kte"] * ds) * cut
@@ -342,11 +354,9 @@ class VirtualMachine:
         sk, ck = np.sin(kappa), np.cos(kappa)
         fxf = np.sum(-fr * sk * cphi - ft * sphi - fa * ck * cphi, axis=(2, 3))
         fyf = np.sum(-fr * sk * sphi + ft * cphi - fa * ck * sphi, axis=(2, 3))
-        d = p.c1 - p.c0
+        d = p.c1[sl] - p.c0[sl]
         f = np.arctan2(d[:, 1], d[:, 0])[:, None]
-        fx = np.cos(f) * fxf - np.sin(f) * fyf
-        fy = np.sin(f) * fxf + np.cos(f) * fyf
-        return simulate_deflection(fx, p.rpm, self.modes["x"]), simulate_deflection(fy, p.rpm, self.modes["y"])
+        return np.cos(f) * fxf - np.sin(f) * fyf, np.sin(f) * fxf + np.cos(f) * fyf
 
     # -- probing ----------------------------------------------------------------------------------
     def probe(self, pts: np.ndarray, normals: np.ndarray, effects: dict | None = None,
