@@ -103,10 +103,11 @@ def simulate(workflow: str, program: Optional[str], effects: list[str], noise_um
             pts = np.stack([plan_pts.column(c).to_numpy() for c in ("x_mm", "y_mm", "z_mm")], 1)
             nrm = np.stack([plan_pts.column(c).to_numpy() for c in ("nx", "ny", "nz")], 1)
             ids = plan_pts.column("point_id").to_numpy()
-            if len(progs) > 1:   # each plan point goes to the program whose passes are nearest
-                _, _, d = nearest_pass(vm.path, pts + vm.R * nrm)
-                mine = d < 0.05
-                pts, nrm, ids = pts[mine], nrm[mine], ids[mine]
+            # a plan point belongs to this program when one of its passes machined it (ideal ball
+            # centre on a centre segment); others belong to other programs or were not machined
+            _, _, d = nearest_pass(vm.path, pts + vm.R * nrm)
+            mine = d < 0.05
+            pts, nrm, ids = pts[mine], nrm[mine], ids[mine]
         else:
             pts, nrm = grid_plan(vm, grid_mm)
             ids = np.arange(len(pts)) + sum(len(p) for p in pieces)

@@ -255,3 +255,39 @@ def test_cli_simulate_writes_a_measurement_file_the_reader_accepts(tmp_path):
     r = CliRunner().invoke(main, ["simulate", str(tmp_path / "wf.yaml"), "--effect", "spindle:x=1",
                                   "--out", str(tmp_path / "m2.csv")])
     assert r.exit_code == 2 and "unknown effect 'spindle'" in r.output
+
+
+def test_cli_run_simulate_diagnose_end_to_end_on_two_rows(tmp_path):
+    """The whole job on the first two rows of the sample: prediction through the render chain, a
+    runout of 10 µm on the virtual machine, the diagnosis with its tables, summary and report."""
+    import json
+    from pipeline.cli import main
+    lines = (SAMPLE / "gap_t1.nc").read_text().splitlines()
+    (tmp_path / "two.nc").write_text("\n".join(lines[:7] + lines[7:49] + ["G0 Z10.", "M5", "M30", "%"]) + "\n")
+    shutil.copy(SAMPLE / "stock.stl", tmp_path / "stock.stl")
+    wf = {"name": "two", "programs": "two.nc", "stock": "stock.stl",
+          "tool": {"type": "ball", "diameter_mm": 6.0, "flutes": 2, "helix_deg": 30.0, "stickout_mm": 30.0},
+          "material": dict(MAT, name="FCD550"),
+          "machine": {"frf": {"x": [{"fn_hz": 900, "zeta": 0.03, "k_n_per_um": 8.0}],
+                              "y": [{"fn_hz": 950, "zeta": 0.03, "k_n_per_um": 9.0}]}},
+          "prune": {"min_contact_deg": 0}, "split": {"merge_max_mm": 0.001}, "output": "out"}
+    (tmp_path / "wf.yaml").write_text(yaml.safe_dump(wf))
+    run = lambda *a: CliRunner().invoke(main, [str(x) for x in a], catch_exceptions=False)  # noqa: E731
+    r = run("simulate", tmp_path / "wf.yaml", "--effect", "runout:e_um=10", "--noise-um", "0.3", "--seed", "3",
+            "--plan", SAMPLE / "plan.csv", "--out", tmp_path / "m.csv")
+    assert r.exit_code == 0, r.output
+    r = run("diagnose", tmp_path / "wf.yaml", "--measurements", tmp_path / "m.csv")
+    assert r.exit_code == 0, r.output
+    g = tmp_path / "out" / "gap"
+    s = json.loads((g / "summary.json").read_text())
+    assert s["effect"] == "runout" and abs(s["params"]["runout"]["e_um"] - 10.0) <= 2.0
+    assert s["rms_after_um"] < 0.5 * s["rms_before_um"] and s["shrink"] == pytest.approx(1 - s["rms_after_um"] / s["rms_before_um"])
+    assert s["where"] and all(k in s["where"][0] for k in ("bbox_mm", "pass_range", "contact_deg", "time_s", "mean_residual_um"))
+    assert "residual_map.png" in (g / "index.html").read_text() and (g / "residual_map.png").stat().st_size > 10_000
+    pts = pq.read_table(tmp_path / "out" / "tables" / "gap_points" / "m.parquet")
+    eff = pq.read_table(tmp_path / "out" / "tables" / "gap_effects" / "m.parquet")
+    assert pts.num_rows == s["n_points"] and eff.column("effect").to_pylist()[0] == "runout"
+    bad = (tmp_path / "m.csv").read_text().splitlines()
+    (tmp_path / "dup.csv").write_text("\n".join(bad + [bad[1]]) + "\n")
+    r = CliRunner().invoke(main, ["diagnose", str(tmp_path / "wf.yaml"), "--measurements", str(tmp_path / "dup.csv")])
+    assert r.exit_code == 2 and "duplicated point id" in r.output
