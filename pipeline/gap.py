@@ -169,7 +169,7 @@ def diagnose_cmd(workflow: str, measurements: str, out: Optional[str] = None) ->
 def public_summary(res: dict) -> dict:
     keys = ("effect", "effects", "params", "where", "where_after", "sigma_um", "n_points", "n_blocks",
             "rms_before_um", "rms_after_um", "p95_before_um", "p95_after_um", "max_before_um", "max_after_um",
-            "shrink", "ranking")
+            "shrink", "shrink_where_acting", "ranking")
     out = {k: res[k] for k in keys if k in res}
     out["held_out"] = "K-fold over spatial blocks: every point predicted by the fit without its block"
     out["model_update"] = model_update(res["params"])
@@ -396,6 +396,7 @@ def blind_cases(vm, passes: pa.Table, errors: Optional[pa.Table], tool: dict, pt
         case = {"case": ci, "truth": truth, "true_order": true_order, "noise_um": sigma,
                 "found": res["effects"], "params": res["params"], "sigma_est_um": res["sigma_um"],
                 "rms_before_um": res["rms_before_um"], "rms_after_um": res["rms_after_um"], "shrink": res["shrink"],
+                "shrink_where_acting": res["shrink_where_acting"],
                 "n_rejected": len(rej)}
         top = res["effect"]
         case["top1_ok"] = (top == (true_order[0] if true_order else "none"))
@@ -419,6 +420,7 @@ def blind_cases(vm, passes: pa.Table, errors: Optional[pa.Table], tool: dict, pt
         "top1_accuracy_effects": float(np.mean([c["top1_ok"] for c in eff])) if eff else None,
         "none_correct": float(np.mean([c["top1_ok"] for c in none])) if none else None,
         "median_shrink": float(np.median([c["shrink"] for c in eff])) if eff else None,
+        "median_shrink_where_acting": float(np.median([c["shrink_where_acting"] or 0.0 for c in eff])) if eff else None,
         "param_error": {"median": float(np.median(perr)) if perr else None,
                         "within_20pct": float(np.mean(np.array(perr) <= 0.2)) if perr else None},
         "pair_order_ok": float(np.mean([c["pair_order_ok"] for c in results if "pair_order_ok" in c]))

@@ -496,9 +496,19 @@ def diagnose(F: dict, noise_um: Optional[float] = None, floor_um: float = 0.0) -
         "p95_before_um": float(np.percentile(np.abs(y), 95)), "p95_after_um": float(np.percentile(np.abs(after), 95)),
         "max_before_um": float(np.abs(y).max()), "max_after_um": float(np.abs(after).max()),
         "shrink": float(1 - rms_a / rms_b) if rms_b > 0 else 0.0,
+        # the same on the points where the chosen effects act (held-out prediction > 10 % of its peak)
+        "shrink_where_acting": _shrink_acting(y, after, base_pred),
         "ranking": ranking,
         "_after": after, "_contrib": contrib, "_blocks": blk,
     }
+
+
+def _shrink_acting(y, after, pred) -> Optional[float]:
+    if not np.any(pred):
+        return None
+    m = np.abs(pred) > 0.1 * np.abs(pred).max()
+    b = _rms(y[m])
+    return float(1 - _rms(after[m]) / b) if b > 0 else None
 
 
 def _rms(v) -> float:
