@@ -337,19 +337,59 @@ def noise_sigma(F, y) -> float:
     return max(float(1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(2)), 1e-6)
 
 
+GRID_POINTS = 20000   # grid searches run on at most this many training points (fixed subset)
+
+
+def _subset(train: np.ndarray) -> np.ndarray:
+    idx = np.flatnonzero(train)
+    if len(idx) <= GRID_POINTS:
+        return train
+    keep = np.zeros_like(train)
+    keep[np.sort(np.random.default_rng(0).choice(idx, GRID_POINTS, replace=False))] = True
+    return keep
+
+
+def fit_joint(F, y, train, chosen: list, cand: Effect):
+    """Add ``cand`` to ``chosen`` on ``train``, re-fitting the chosen effects' nonlinear parameters.
+
+    Coordinate descent, one pass: candidate grid with the others fixed, each chosen effect's grid
+    with the rest (candidate included) fixed, the candidate again. Returns (chosen with updated
+    nonlinear parameters, candidate's value, betas on the whole training set).
+    """
+    sub = _subset(train)
+    th, _ = fit_effects(F, y, sub, chosen, cand)
+    chosen = list(chosen)
+    if chosen:
+        for i, (e, t) in enumerate(chosen):
+            if not t:
+                continue
+            others = chosen[:i] + chosen[i + 1:] + [(cand, th)]
+            t2, _ = fit_effects(F, y, sub, others, e)
+            chosen[i] = (e, t2)
+        th, _ = fit_effects(F, y, sub, chosen, cand)
+    X = np.hstack([e.basis(F, t) for e, t in chosen] + [cand.basis(F, th)])
+    beta = np.linalg.lstsq(X[train], y[train], rcond=None)[0]
+    if cand.name in NONNEG and beta[-1] < 0 and chosen:
+        Xb = X[:, :-1]
+        beta = np.concatenate([np.linalg.lstsq(Xb[train], y[train], rcond=None)[0], [0.0]])
+    elif cand.name in NONNEG and beta[-1] < 0:
+        beta = np.zeros(X.shape[1])
+    return chosen, th, beta
+
+
 def cv_predict(F, y, fold, effects: list, cand: Optional[Effect] = None):
     """Held-out prediction of ``effects`` (+ cand): each fold predicted by the fit on the others.
 
-    ``effects`` are (Effect, grid value) with fixed nonlinear parameters; the candidate's grid value
-    is chosen on each training set.
+    ``effects`` are (Effect, grid value); with a candidate, all nonlinear parameters are re-fitted
+    on each training set (``fit_joint``), else they stay fixed.
     """
     pred = np.zeros_like(y)
     for f in range(fold.max() + 1):
         test = fold == f
         train = ~test
         if cand is not None:
-            th, beta = fit_effects(F, y, train, effects, cand)
-            X = np.hstack([e.basis(F, t) for e, t in effects] + [cand.basis(F, th)])
+            ch, th, beta = fit_joint(F, y, train, effects, cand)
+            X = np.hstack([e.basis(F, t) for e, t in ch] + [cand.basis(F, th)])
         else:
             X = np.hstack([e.basis(F, t) for e, t in effects])
             beta, *_ = np.linalg.lstsq(X[train], y[train], rcond=None)
@@ -419,7 +459,7 @@ def diagnose(F: dict, noise_um: Optional[float] = None, floor_um: float = 0.0) -
                 break
         if not (top["gain"] > top["threshold"] and top["big"]):
             break
-        th, _ = fit_effects(F, y, np.ones(n, bool), chosen, top["eff"])
+        chosen, th, _ = fit_joint(F, y, np.ones(n, bool), chosen, top["eff"])
         chosen.append((top["eff"], th))
         sse_base = top["sse"]
         base_pred = top["pred"]
@@ -439,7 +479,7 @@ def diagnose(F: dict, noise_um: Optional[float] = None, floor_um: float = 0.0) -
                 margin = float(chi2.ppf(1 - ALPHA, abs(dp))) * sigma ** 2 if dp else 0.0
                 better = sse < sse_base - margin if dp > 0 else sse < sse_base + margin
                 if better:
-                    th, _ = fit_effects(F, y, np.ones(n, bool), rest, eff)
+                    rest, th, _ = fit_joint(F, y, np.ones(n, bool), rest, eff)
                     chosen = rest[:i] + [(eff, th)] + rest[i:]
                     sse_base, base_pred = sse, pred
                     break
