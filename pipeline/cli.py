@@ -198,12 +198,13 @@ def diagnose(workflow, measurements, out):
 @click.option("--cases", type=click.IntRange(1), default=56, show_default=True)
 @click.option("--pairs", type=click.IntRange(0), default=0, show_default=True, help="Extra cases with two effects.")
 @click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--kinds", help="Comma-separated effects (and 'none') the single cases cycle through (default: all).")
 @click.option("--out", "out", type=click.Path(file_okay=False))
-def blind_check(workflow, cases, pairs, seed, out):
+def blind_check(workflow, cases, pairs, seed, kinds, out):
     """Random effect (or none) per case on the virtual machine, diagnosed without telling it."""
     from pipeline.gap import blind_check as bc
     try:
-        s = bc(workflow, cases, seed, out, pairs=pairs,
+        s = bc(workflow, cases, seed, out, pairs=pairs, kinds=kinds.split(",") if kinds else None,
                progress=lambda i, c: click.echo(f"case {i}: truth {list(c['truth']) or ['none']} found {c['found'] or ['none']} "
                                                 f"shrink {c['shrink']:.2f}", err=True))
     except (WorkflowError, InputError) as e:

@@ -313,7 +313,7 @@ def _runout_eff(true: dict) -> float:
 
 
 def blind_check(workflow: str, cases: int, seed: int, out: Optional[str] = None, noise=(0.3, 1.0),
-                pairs: int = 0, progress=None) -> dict:
+                pairs: int = 0, progress=None, kinds: Optional[list] = None) -> dict:
     """Random effect (or none) per case, simulated on the virtual machine, diagnosed blind."""
     from stages.gap import associate
     from stages.virtual_machine import EFFECTS, VirtualMachine
@@ -337,12 +337,23 @@ def blind_check(workflow: str, cases: int, seed: int, out: Optional[str] = None,
         from stages.virtual_machine import grid_plan
         pts, nrm = grid_plan(vm)
     summary = blind_cases(vm, sub, tabs.get("errors"), tool, pts, nrm, cases, seed, noise=noise, pairs=pairs,
-                          off_part_mm=spec.off_part_mm, progress=progress, deflection=tabs.get("deflection"))
+                          off_part_mm=spec.off_part_mm, progress=progress, deflection=tabs.get("deflection"),
+                          kinds=_check_kinds(kinds))
     summary["workflow"] = workflow
     bdir = outdir / "blind"
     bdir.mkdir(parents=True, exist_ok=True)
     (bdir / "summary.json").write_text(json.dumps(summary, indent=2, default=_jsonable))
     return summary
+
+
+def _check_kinds(kinds):
+    from stages.virtual_machine import EFFECTS
+    if not kinds:
+        return None
+    bad = [k for k in kinds if k != "none" and k not in EFFECTS]
+    if bad:
+        raise InputError(f"--kinds: unknown {bad} (known: none, {', '.join(EFFECTS)})")
+    return list(kinds)
 
 
 def blind_cases(vm, passes: pa.Table, errors: Optional[pa.Table], tool: dict, pts: np.ndarray, nrm: np.ndarray,
@@ -362,10 +373,11 @@ def blind_cases(vm, passes: pa.Table, errors: Optional[pa.Table], tool: dict, pt
     rng = np.random.default_rng(seed)
     plan_cases = [[kinds[i % len(kinds)]] for i in range(cases)]
     rng.shuffle(plan_cases)
+    pool = [k for k in kinds if k != "none"] or list(EFFECTS)
     for _ in range(pairs):
         # the larger effect of a pair acts over the whole part (a corner effect is small in RMS)
-        a = rng.choice([k for k in kinds if k not in ("none", "servo_corner")])
-        b = rng.choice([k for k in kinds if k not in ("none", a)])
+        a = rng.choice([k for k in pool if k != "servo_corner"])
+        b = rng.choice([k for k in pool if k != a])
         plan_cases.append([str(a), str(b)])
     results = []
     t_start = time.perf_counter()
