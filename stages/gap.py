@@ -517,7 +517,7 @@ def diagnose(F: dict, noise_um: Optional[float] = None, floor_um: float = 0.0) -
             params[e.name] = e.params(b, t)
             contrib[e.name] = e.basis(F, t) @ b
             k += e.n_lin
-    order = sorted(contrib, key=lambda nme: -unique.get(nme, float(np.sqrt(np.mean(contrib[nme] ** 2)))))
+    order = sorted(contrib, key=lambda nme: -float(np.sqrt(np.mean(contrib[nme] ** 2))))
     after = y - base_pred
     rms_b, rms_a = _rms(y), _rms(after)
     for i, r in enumerate(first_round or []):
