@@ -46,7 +46,9 @@ NAME = "correct"
 VERSION = "2"
 INPUTS = ("blocks", "passes", "errors")
 OUTPUTS = ("corrected",)
-PARAMS = ("correct",)
+# only the clip limit changes the table; tol_um and max_iter steer the engine's rounds and the LN /
+# compensation-table options the writer, so changing them re-uses every cached round
+PARAMS = ("correct.max_move_um",)
 
 DEFAULTS = {"max_move_um": 50.0, "tol_um": 0.1, "max_iter": 5, "ln_normals": False, "comp_table": False}
 _PLANE_AXES = {17: (0, 1, 2), 18: (2, 0, 1), 19: (1, 2, 0)}  # as stages.parse: (first, second, normal)
