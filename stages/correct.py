@@ -28,12 +28,21 @@ m = −(e_i n_i + e_j n_j), which realises both errors exactly.
   micrometre) fit the centre freely through the start and put the end back on the circle; an arc
   whose sweep would still jump by more than 90° is translated with its start instead.
 
-Iteration (seed 003, DESIGN §7): :func:`correct_once` takes the *current* blocks (already corrected
-ones on later rounds) and the errors predicted for them, plus the previous ``corrected`` table; it
-accumulates the moves, keeps the original coordinates and counts iterations. :func:`apply_corrected`
-turns a ``corrected`` table back into ``blocks`` (new coordinates and arc centres) for the next
-prediction, and :func:`correct_iteratively` runs the loop around any prediction callable until the
-largest change is below ``tol_um`` or ``max_iter`` rounds have run.
+Iteration (seed 003, DESIGN §7): :func:`correct_once` takes blocks, their passes and errors plus the
+previous ``corrected`` table; it adds its move to the blocks' own offset from the original
+coordinates (kept from the previous table), clips the total, counts iterations and reports the
+change against the previous table's coordinates. Two kinds of errors drive it:
+
+- residuals against the ORIGINAL surface (a measurement, or a closed-loop simulation): pass the
+  current (corrected) blocks; the moves accumulate. :func:`correct_iteratively` runs this loop
+  around any callable that machines/measures a program (the closed-loop tests).
+- predictions, which are relative to the path they were made for (the surface of path P is
+  P + e(P)·n): the command that leaves the original surface is the fixed point P = P0 − e(P)·n, so
+  the move for the errors predicted on the corrected path is applied to the ORIGINAL blocks
+  (:func:`run` with ``round_passes``; the engine's rounds in ``pipeline/iterate.py``).
+
+:func:`apply_corrected` turns a ``corrected`` table back into ``blocks`` (new coordinates and arc
+centres) for the next prediction.
 """
 from __future__ import annotations
 
