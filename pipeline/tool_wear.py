@@ -9,7 +9,8 @@ or, for a run stopped before the render stages, every feed move (G1–G3), said 
 ``cut_length_source``. The table (schema ``schemas/tool_wear.py``) is written to a temporary name and
 renamed, so a failure leaves nothing behind.
 
-    duckdb -c "select contact_deg, wear_um, wear_rate_um_per_m from 'wear.parquet' where contact_deg in (30, 45, 60)"
+    import duckdb
+    duckdb.sql("select contact_deg, wear_um, wear_rate_um_per_m from 'wear.parquet' where contact_deg in (30, 45, 60)")
 """
 from __future__ import annotations
 
