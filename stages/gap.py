@@ -7,16 +7,22 @@
    Points farther than ``off_part_mm`` from every tool envelope, or whose normal disagrees with the
    envelope's by more than ``MAX_NORMAL_DEG``, are rejected and listed.
 2. ``where``: residual r = measured − predicted; spatial blocks whose mean residual differs from
-   zero by more than 3 standard errors (and by more than the noise σ/2), with bounding box, pass
-   range, contact-angle band, time window, mean and 95 % interval.
+   zero by more than 3 standard errors and by more than σ/2, with bounding box, pass range,
+   contact-angle band, time window, mean and 95 % interval (before, and after the effects).
 3. ``diagnose``: the effect catalogue below, each a physical parametric model of r, fitted on
    training blocks and scored on held-out blocks (K-fold over spatial blocks). An effect is kept when
    its held-out sum of squares improvement, in units of the noise variance σ² (σ from differences of
    neighbouring points along the path, robust), exceeds the χ² quantile at ``ALPHA`` for its number of
-   parameters — a noise-based test, fixed a priori. Greedy: the best significant effect is added,
-   the others refitted jointly with it, and so on (at most ``MAX_EFFECTS``).
+   parameters, and the RMS it explains where it acts reaches half of hypot(σ, model floor) (the floor
+   is 0 unless a reference part measured it). Greedy (at most ``MAX_EFFECTS``): the best significant
+   effect is added — a simpler one when the richer one is not better by the χ² margin of its extra
+   parameters — with the nonlinear parameters of those already chosen re-fitted; then one swap pass
+   and a backward check (every kept effect must still pass both tests given the others). The order
+   of size is the RMS of each effect's fitted contribution.
 4. ``how far``: held-out predictions (each point predicted by the fit without its block) of the
-   prediction plus the chosen effects: RMS, P95, max before and after.
+   prediction plus the chosen effects' terms (the same model with the effect added: tool profile,
+   force scale on the deflection term, machine offsets): RMS, P95, max before and after, and the
+   same on the points where the effects act.
 
 Catalogue (signature on r, µm; features as in ``associate``):
 
