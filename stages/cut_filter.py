@@ -64,25 +64,32 @@ def z_range(pg: geo.PassGeometry, wp: geo.Workpiece, shape: geo.ToolShape):
     return float(zs.min()) - 1.0, float(zs.max()) + shape.stickout_mm + 1.0
 
 
-def scan_tiles(pg, shape, wp, px_per_mm, which, zlo, zhi):
-    """From-below tiles (at most TILE_PX a side) over the sweeps of ``which`` within the stock."""
+def scan_tiles(pg, shape, wp, px_per_mm, which, zlo, zhi, halo_mm=0.0):
+    """From-below tiles (at most TILE_PX a side) over the sweeps of ``which`` within the stock.
+
+    Returns (views, cores): each view covers its core rectangle (lo_xy, hi_xy) plus ``halo_mm``
+    on every side, so any window of half-size ``halo_mm`` centred in a core lies in its tile.
+    """
     bounds = pg.sweep_bounds(shape)
     if not len(which):
-        return []
+        return [], []
     lo = np.maximum(bounds[which, 0, :2].min(0), wp.bounds[0, :2])
     hi = np.minimum(bounds[which, 1, :2].max(0), wp.bounds[1, :2])
     if np.any(hi <= lo):
-        return []
-    tile_mm = TILE_PX / px_per_mm
-    nx, ny = (max(1, math.ceil((hi[k] - lo[k]) / tile_mm)) for k in (0, 1))
-    tiles = []
+        return [], []
+    core_mm = TILE_PX / px_per_mm - 2.0 * halo_mm
+    if core_mm <= 0:
+        raise ValueError(f"tile of {TILE_PX} px too small for a halo of {halo_mm} mm")
+    nx, ny = (max(1, math.ceil((hi[k] - lo[k]) / core_mm)) for k in (0, 1))
+    views, cores = [], []
     for ix in range(nx):
         for iy in range(ny):
-            x0, y0 = lo[0] + ix * tile_mm, lo[1] + iy * tile_mm
-            w, h = min(tile_mm, hi[0] - x0), min(tile_mm, hi[1] - y0)
-            tiles.append(View((x0 + w / 2, y0 + h / 2, 0.0), (0, 0, 1.0), (0, 1.0, 0), w, h,
-                              px_per_mm, zlo, zhi))
-    return tiles
+            x0, y0 = lo[0] + ix * core_mm, lo[1] + iy * core_mm
+            w, h = min(core_mm, hi[0] - x0), min(core_mm, hi[1] - y0)
+            views.append(View((x0 + w / 2, y0 + h / 2, 0.0), (0, 0, 1.0), (0, 1.0, 0),
+                              w + 2 * halo_mm, h + 2 * halo_mm, px_per_mm, zlo, zhi))
+            cores.append((np.array([x0, y0]), np.array([x0 + w, y0 + h])))
+    return views, cores
 
 
 def cut_filter(pg: geo.PassGeometry, shape: geo.ToolShape, wp: geo.Workpiece, renderer,
@@ -107,7 +114,7 @@ def cut_filter(pg: geo.PassGeometry, shape: geo.ToolShape, wp: geo.Workpiece, re
     b_max = np.full(n, -np.inf)
     surface_px = np.zeros(n, np.int64)
     surface_q = np.full(n, -np.inf)
-    for view in scan_tiles(pg, shape, wp, px_per_mm, cand, zlo, zhi):
+    for view in scan_tiles(pg, shape, wp, px_per_mm, cand, zlo, zhi)[0]:
         lo_w, hi_w = geo.window_xy_bounds([view])
         inside = cand[geo.overlaps(lo_w, hi_w, bounds[cand, 0], bounds[cand, 1])[0]]
 

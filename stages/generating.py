@@ -36,11 +36,12 @@ import pyarrow as pa
 import schemas
 from stages import InputError
 from stages import geometry as geo
-from stages.cut_filter import coarse_tolerance, fine_tolerance, render_settings, z_range
-from stages.render import Scene, View
+from stages.cut_filter import (PASSES_PER_DRAW, coarse_tolerance, fine_tolerance, render_settings,
+                               scan_tiles, z_range)
+from stages.render import Scene, Snapshot, View
 
 NAME = "generating"
-VERSION = "1"
+VERSION = "2"
 INPUTS = ("passes", "stock", "cut_filter", "angle_prune")
 OUTPUTS = ("generating", "engagement")
 PARAMS = ("tool", "render")
@@ -238,57 +239,166 @@ def generating(pg, shape, wp, renderer, px_per_mm, predict_idx, pred_tips, flute
     gen["n_px"] = np.zeros(m, np.int64)
     gen["view"] = np.array(["none"] * m, dtype=object)
     eng = [None] * m
+    if m == 0:
+        return gen, eng
     feed_deg = pg.feed_deg
     plunge = np.hypot(*(pg.p1 - pg.p0)[:, :2].T) < 1e-9
     feed_deg = np.where(plunge, 0.0, feed_deg)
     margin = 2.0 / px_per_mm
-    for b0 in range(0, m, PASSES_PER_BATCH):
-        sl = np.arange(b0, min(m, b0 + PASSES_PER_BATCH))
-        ii = predict_idx[sl]
-        tips = pred_tips[sl]
-        s_p = pg.s0[ii] + np.linalg.norm(tips - pg.p0[ii], axis=1)
-        f = f_all[ii]
-        fd = feed_deg[ii]
-        views = [View((t[0], t[1], 0.0), (0, 0, 1.0),
-                      (np.cos(np.radians(a)), np.sin(np.radians(a)), 0.0),
-                      2 * R + 2 * margin, 2 * R + 2 * margin, px_per_mm, zlo, zhi)
-                 for t, a in zip(tips, fd)]
-        n = len(views)
-        gap = own_path_gap(shape, f, tol)
-        dirs = pg.p1[ii] - pg.p0[ii]
-        u = dirs / np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-12)
-        scene = _layer_scene(views, pg, cutting, s_p, f, bounds, wp, mesh, tips, fd, coarse, gap)
-        imgs = renderer.render(views * N_LAYERS, scene)
-        redo = []                                     # (slot, estimated q, phi)
-        for k in range(n):
-            layers = [imgs[L * n + k] for L in range(N_LAYERS)]
-            surv, cut = _composite(layers, _own_path_strip(layers[3], shape, u[k], fd[k], f[k]))
-            slot = sl[k]
-            eng[slot] = (_engagement(shape, views[k], layers, tips[k], fd[k], dz, n_phi, tol),
-                         dz, (np.cos(np.radians(fd[k])), np.sin(np.radians(fd[k]))))
-            M = layers[3]
-            if surv.any():
-                q, phi = _angles(M, surv)
-                _store(gen, slot, views[k], M, surv, q, phi, fd[k], "below")
-                if q > STEEP_DEG:
-                    redo.append((k, q, phi))
-            elif cut.any() and _redo_when_lost:
-                # nothing survives from below: estimate the place from the cut pixels closest
-                # to surviving (smallest depth margin behind T2)
-                strip = _own_path_strip(M, shape, u[k], fd[k], f[k])
-                cand = cut & strip if (cut & strip).any() else cut
-                with np.errstate(invalid="ignore"):
-                    margin_t2 = np.where(cand, M.depth - layers[2].depth, np.inf)
-                near_px = cand & (margin_t2 <= np.quantile(margin_t2[cand], 0.02))
-                q, phi = _angles(M, near_px)
-                redo.append((k, max(q, STEEP_DEG), phi))
-        # claim 6: look along the estimated normal, zoomed; zoom further where still nothing
+    s_p = pg.s0[predict_idx] + np.linalg.norm(pred_tips - pg.p0[predict_idx], axis=1)
+    f = f_all[predict_idx]
+    fd = feed_deg[predict_idx]
+    gap = own_path_gap(shape, f, tol)
+    dirs = pg.p1[predict_idx] - pg.p0[predict_idx]
+    u = dirs / np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-12)
+    half = R + margin
+    final, tile_of, snaps = _scan_program(pg, shape, wp, renderer, px_per_mm, mesh, predict_idx,
+                                          pred_tips, f, u, zlo, zhi, half)
+    # M at every prediction point, from below, many windows per atlas
+    views = [View((t[0], t[1], 0.0), (0, 0, 1.0), (np.cos(np.radians(a)), np.sin(np.radians(a)), 0.0),
+                  2 * half, 2 * half, px_per_mm, zlo, zhi) for t, a in zip(pred_tips, fd)]
+    tris, q, phi, owner = geo.envelope_copies(mesh, pred_tips, feed_deg=fd, view_dir=(0, 0, 1.0))
+    from stages.render import make_scene
+    mimgs = renderer.render(views, make_scene(tris, owner, ID_M, a=phi, b=q))
+    path_lo, path_hi = pg.s0, pg.s0 + pg.length
+    redo = []                                     # (slot, estimated q, phi)
+    for k in range(m):
+        M = mimgs[k]
+        on = M.id >= 0
+        rows, cols = np.nonzero(on)
+        pts = views[k].pixel_points(rows, cols, M.depth[on])
+        fin = final[tile_of[k]]
+        c, r, _ = fin.view.project(pts)
+        hh, ww = fin.id.shape
+        ri = np.clip(np.floor(r).astype(np.int64), 0, hh - 1)
+        ci = np.clip(np.floor(c).astype(np.int64), 0, ww - 1)
+        who = fin.id[ri, ci]
+        # surviving: the final surface there was left by the own path within f + gap of p (the
+        # closed-form strip narrows that to +-f): no other sweep and no stock is in front of M
+        whoc = np.clip(who, 0, None)
+        near = (who >= 0) & (path_lo[whoc] < s_p[k] + f[k] + gap[k]) & (path_hi[whoc] > s_p[k] - f[k] - gap[k])
+        strip = _own_path_strip(M, shape, u[k], fd[k], f[k])
+        surv = np.zeros_like(on)
+        surv[on] = near
+        surv &= strip
+        hview, h = snaps[k]
+        eng[k] = (_engagement(shape, hview, h, pred_tips[k], fd[k], dz, n_phi, tol), dz,
+                  (np.cos(np.radians(fd[k])), np.sin(np.radians(fd[k]))))
+        if surv.any():
+            qk, phik = _angles(M, surv)
+            _store(gen, k, views[k], M, surv, qk, phik, fd[k], "below")
+            if qk > STEEP_DEG:
+                redo.append((k, qk, phik))
+            continue
+        if not _redo_when_lost:
+            continue
+        # nothing survives from below (steep walls shrink below a pixel, or the pass rolls over
+        # an edge): the surface it leaves lies on its own-path strip (the envelope circle
+        # perpendicular to the motion) where that strip is in the material before the cut;
+        # the mean direction of those engaged points is where to look from (claim 6)
+        est = _strip_estimate(shape, eng[k][0], dz, n_phi, u[k], fd[k])
+        if est is not None:
+            redo.append((k, max(est[0], STEEP_DEG), est[1]))
+    _view_correction(gen, redo, pg, shape, wp, renderer, px_per_mm, cutting, bounds, mesh, coarse,
+                     pred_tips, s_p, f, fd, gap, u)
+    return gen, eng
+
+
+def _strip_estimate(shape, E, dz, n_phi, u, feed_deg, width=0.1):
+    """(q, φ) of the mean direction of the engaged envelope points with |N·u| < ``width``.
+
+    ``E`` is the engagement grid (axial levels × rotation angles, see :func:`unpack_engagement`);
+    N is the envelope normal at a grid point. Returns None when no such point is engaged.
+    """
+    n_z = E.shape[0]
+    z = (np.arange(n_z) + 0.5) * dz
+    rc = max(shape.corner_mm, 1e-9)
+    q = np.where(z < rc, np.arccos(np.clip((rc - z) / rc, -1.0, 1.0)), np.pi / 2)
+    phi = np.radians((np.arange(n_phi) + 0.5) * 360.0 / n_phi)
+    th = phi + np.radians(feed_deg)
+    N = np.stack(np.broadcast_arrays(np.sin(q)[:, None] * np.cos(th)[None], np.sin(q)[:, None] * np.sin(th)[None],
+                                     -np.cos(q)[:, None] + 0 * th[None]), axis=-1)
+    sel = E & (np.abs(N @ np.asarray(u, float)) < width)
+    if not sel.any():
+        return None
+    qq = np.broadcast_to(q[:, None], E.shape)[sel]
+    pp = np.broadcast_to(phi[None], E.shape)[sel]
+    v = np.array([np.mean(np.sin(qq) * np.cos(pp)), np.mean(np.sin(qq) * np.sin(pp)), np.mean(np.cos(qq))])
+    return (float(np.degrees(np.arctan2(np.hypot(v[0], v[1]), v[2]))),
+            float(np.degrees(np.arctan2(v[1], v[0])) % 360.0))
+
+
+def _scan_program(pg, shape, wp, renderer, px_per_mm, mesh, predict_idx, tips, f, u, zlo, zhi, half):
+    """One ordered scan of the program per tile: the final surface (which pass leaves which
+    pixel) and, at each prediction point, a snapshot of the material left before it (stock,
+    every earlier pass, and the own pass up to p - f): the claim-5 cutting region's top.
+
+    Returns (final images per tile, tile index per prediction, [(View, height (rows, cols))]).
+    """
+    cand = np.nonzero(pg.motion != 0)[0]
+    bounds = pg.sweep_bounds(shape)
+    views, cores = scan_tiles(pg, shape, wp, px_per_mm, cand, zlo, zhi, halo_mm=half + 2.0 / px_per_mm)
+    m = len(predict_idx)
+    tile_of = np.zeros(m, np.int64)
+    for t, (lo, hi) in enumerate(cores):                       # tiles are few; cores partition
+        inside = np.all((tips[:, :2] >= lo) & (tips[:, :2] <= hi), axis=1)
+        tile_of[inside] = t
+    n_side = int(np.ceil(2 * half * px_per_mm))
+    final, snaps = [], [None] * m
+    for t, view in enumerate(views):
+        lo_w, hi_w = geo.window_xy_bounds([view])
+        inside = cand[geo.overlaps(lo_w, hi_w, bounds[cand, 0], bounds[cand, 1])[0]]
+        mine = np.nonzero(tile_of == t)[0]
+        mine = mine[np.argsort(predict_idx[mine], kind="stable")]
+        rects = []
+        for k in mine:
+            c, r, _ = view.project(tips[k][None])
+            r0 = int(np.clip(np.floor(r[0]) - n_side // 2, 0, view.shape[0] - n_side))
+            c0 = int(np.clip(np.floor(c[0]) - n_side // 2, 0, view.shape[1] - n_side))
+            rects.append(Snapshot(r0, c0, n_side, n_side))
+
+        def batches(inside=inside, mine=mine, rects=rects):
+            done = 0                                           # passes of `inside` drawn so far
+            for k, rect in zip(mine, rects):
+                i = predict_idx[k]
+                upto = int(np.searchsorted(inside, i))
+                for a in range(done, upto, PASSES_PER_DRAW):
+                    j = inside[a:min(upto, a + PASSES_PER_DRAW)]
+                    yield geo.ordered_sweep_scene(mesh, pg.p0[j], pg.p1[j], j)
+                done = max(done, upto)
+                back = tips[k] - f[k] * u[k]                   # the own pass up to p - f
+                if np.dot(back - pg.p0[i], u[k]) > 0:
+                    yield geo.ordered_sweep_scene(mesh, pg.p0[i][None], back[None], [i])
+                yield rect
+            for a in range(done, len(inside), PASSES_PER_DRAW):
+                j = inside[a:a + PASSES_PER_DRAW]
+                yield geo.ordered_sweep_scene(mesh, pg.p0[j], pg.p1[j], j)
+
+        res = renderer.scan(view, geo.workpiece_scene(wp, [view], -2.0), batches(), len(pg.pass_id), 1)
+        final.append(res.final)
+        for k, rect, depth in zip(mine, rects, res.snapshots):
+            right, up, _ = view.basis()
+            cx = (rect.col0 + rect.cols / 2 - view.shape[1] / 2) / px_per_mm
+            cy = (rect.row0 + rect.rows / 2 - view.shape[0] / 2) / px_per_mm
+            ctr = np.asarray(view.center, float) + cx * right + cy * up
+            sv = View(tuple(ctr), view.view_dir, view.up, rect.cols / px_per_mm, rect.rows / px_per_mm,
+                      px_per_mm, view.near_mm, view.far_mm)
+            snaps[k] = (sv, depth)
+    return final, tile_of, snaps
+
+
+def _view_correction(gen, redo, pg, shape, wp, renderer, px_per_mm, cutting, bounds, mesh, coarse,
+                     tips, s_p, f, fd, gap, u):
+    """Claim 6: look along the estimated normal, zoomed; zoom further where still nothing."""
+    R = shape.radius_mm
+    for b0 in range(0, len(redo), PASSES_PER_BATCH):
+        todo = redo[b0:b0 + PASSES_PER_BATCH]
         for size, zoom in VIEW_STEPS:
-            if not redo:
+            if not todo:
                 break
-            ks = np.array([r[0] for r in redo])
+            ks = np.array([r[0] for r in todo])
             ovs = []
-            for k, q, phi in redo:
+            for k, q, phi in todo:
                 nrm = material_normal(q, phi, fd[k])
                 c = tips[k] + shape.point(q, phi, fd[k])
                 upv = (np.cos(np.radians(fd[k])), np.sin(np.radians(fd[k])), 0.0)
@@ -306,11 +416,10 @@ def generating(pg, shape, wp, renderer, px_per_mm, predict_idx, pred_tips, flute
                 surv, _ = _composite(layers, _own_path_strip(layers[3], shape, u[k], fd[k], f[k]))
                 if surv.any():
                     q, phi = _angles(layers[3], surv)
-                    _store(gen, sl[k], ovs[r], layers[3], surv, q, phi, fd[k], "normal")
-                elif gen["view"][sl[k]] == "none":
-                    still.append(redo[r])
-            redo = still
-    return gen, eng
+                    _store(gen, k, ovs[r], layers[3], surv, q, phi, fd[k], "normal")
+                elif gen["view"][k] == "none":
+                    still.append(todo[r])
+            todo = still
 
 
 def _store(gen, slot, view, M, mask, q, phi, feed, how):
@@ -326,11 +435,13 @@ def _store(gen, slot, view, M, mask, q, phi, feed, how):
     gen["view"][slot] = how
 
 
-def _engagement(shape, view, layers, tip, feed, dz, n_phi, tol):
-    """E[k, j]: envelope point at height (k+.5)dz, angle (j+.5)360/n_phi inside the material."""
-    W, T1, T1n = layers[0], layers[1], layers[4]
-    h = np.where(W.id >= 0, np.minimum(np.minimum(W.depth, T1.depth), T1n.depth), -np.inf)  # top (z)
-    top = np.max(h[np.isfinite(h)]) - tip[2] if np.isfinite(h).any() else 0.0
+def _engagement(shape, view, h, tip, feed, dz, n_phi, tol):
+    """E[k, j]: envelope point at height (k+.5)dz, angle (j+.5)360/n_phi inside the material.
+
+    ``h`` is the top of the material left before the cut (absolute z per pixel of ``view``, a
+    from-below window; the view's near plane where there is none).
+    """
+    top = np.max(h) - tip[2] if h.size else 0.0
     n_z = int(np.clip(np.ceil(min(top, shape.stickout_mm) / dz), 1, None))
     z = (np.arange(n_z) + 0.5) * dz
     phi = (np.arange(n_phi) + 0.5) * 360.0 / n_phi

@@ -251,24 +251,30 @@ def envelope_copies(mesh: EnvelopeMesh, tips, feed_deg=None, view_dir=None):
     tris (k*m, 3, 3), q_deg (k*m, 3), phi_deg (k*m, 3), owner (k*m,) index into ``tips``.
     """
     tips = np.atleast_2d(np.asarray(tips, dtype=float))
-    sel = np.arange(len(mesh.tris))
-    if view_dir is not None:
-        front = mesh.face_normals[mesh.face_of_tri] @ np.asarray(view_dir, float) < -1e-9
-        sel = sel[front]
-    base = mesh.tris[sel]
-    k, m = len(tips), len(sel)
+    k = len(tips)
+    nrm = mesh.face_normals[mesh.face_of_tri]                          # (m, 3)
     if feed_deg is None:
-        tris = base[None] + tips[:, None, None, :]
+        front = (np.ones((k, len(nrm)), bool) if view_dir is None
+                 else np.broadcast_to(nrm @ np.asarray(view_dir, float) < -1e-9, (k, len(nrm))))
+        owner, sel = np.nonzero(front)
+        tris = mesh.tris[sel] + tips[owner, None, :]
     else:
-        a = np.radians(np.asarray(feed_deg, dtype=float))
-        ca, sa = np.cos(a)[:, None, None], np.sin(a)[:, None, None]
-        x, y, z = base[..., 0][None], base[..., 1][None], base[..., 2][None]
-        tris = np.stack([ca * x - sa * y, sa * x + ca * y, np.broadcast_to(z, (k, m, 3))], -1)
-        tris = tris + tips[:, None, None, :]
-    q = np.broadcast_to(mesh.q_deg[sel][None], (k, m, 3)).reshape(-1, 3)
-    th = np.broadcast_to(mesh.theta_deg[sel][None], (k, m, 3)).reshape(-1, 3)
-    owner = np.repeat(np.arange(k), m)
-    return tris.reshape(-1, 3, 3), q, th, owner
+        a = np.radians(np.broadcast_to(np.asarray(feed_deg, dtype=float), (k,)))
+        ca, sa = np.cos(a), np.sin(a)
+        if view_dir is None:
+            front = np.ones((k, len(nrm)), bool)
+        else:
+            # cull in the mesh frame: the view direction rotated back by each copy's feed angle
+            v = np.asarray(view_dir, float)
+            vx = ca * v[0] + sa * v[1]
+            vy = -sa * v[0] + ca * v[1]
+            front = (np.outer(vx, nrm[:, 0]) + np.outer(vy, nrm[:, 1]) + v[2] * nrm[None, :, 2]) < -1e-9
+        owner, sel = np.nonzero(front)
+        base = mesh.tris[sel]
+        c, s_ = ca[owner, None], sa[owner, None]
+        x, y = base[..., 0], base[..., 1]
+        tris = np.stack([c * x - s_ * y, s_ * x + c * y, base[..., 2]], -1) + tips[owner, None, :]
+    return tris, mesh.q_deg[sel], mesh.theta_deg[sel], owner
 
 
 def sweep_bands(mesh: EnvelopeMesh, p0, p1, view_dir=None):

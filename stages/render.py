@@ -212,11 +212,23 @@ class ScanResult:
     counts : (n_ids, n_bins) fragments of each id that passed the depth test, by bin of ``a``.
     b_max : (n_ids,) largest ``b`` among them (-inf where none passed).
     final : the final image (id -1 where no counted triangle is the last passing fragment).
+    snapshots : depth (mm along the view) over each :class:`Snapshot` rectangle, in order.
     """
 
     counts: np.ndarray
     b_max: np.ndarray
     final: Image
+    snapshots: list
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """Marker in the batches of :meth:`Renderer.scan`: read the depth over these pixels now."""
+
+    row0: int
+    col0: int
+    rows: int
+    cols: int
 
 
 class Renderer:
@@ -282,7 +294,10 @@ class Renderer:
         the final surface and which id left it.
 
         Memory is bounded by the window and the triangle budget per draw: ``batches`` is any
-        iterable of scenes (e.g. a generator over pass ranges), each split into draws.
+        iterable of scenes (e.g. a generator over pass ranges), each split into draws. A
+        :class:`Snapshot` among them records the depth buffer (mm along the view, ``near_mm``
+        where nothing is) over its pixel rectangle at that point of the scan: the material left
+        at that moment (``ScanResult.snapshots``, in order).
         """
         h, w = view.shape
         if max(h, w) > self.max_atlas_px():
@@ -290,11 +305,17 @@ class Renderer:
         offs = [(0, 0, 0)]
         counts = np.zeros((n_ids, n_bins), np.int64)
         b_max = np.full(n_ids, -np.inf)
+        snaps = []
         self._scan_start((h, w), n_ids, n_bins)
         try:
             pos, attrs, rect, _ = _to_atlas([view], stock, offs)
             self._scan_stock(pos, attrs, rect)
             for sc in batches:
+                if isinstance(sc, Snapshot):
+                    r0, c0 = sc.row0, sc.col0
+                    d01 = self._scan_depth(r0, c0, sc.rows, sc.cols)
+                    snaps.append(d01 * (view.far_mm - view.near_mm) + view.near_mm)
+                    continue
                 for a in range(0, len(sc.tris), self.tri_budget):
                     part = Scene(sc.tris[a:a + self.tri_budget], sc.attrs[a:a + self.tri_budget],
                                  sc.bias[a:a + self.tri_budget],
@@ -307,7 +328,7 @@ class Renderer:
         depth = np.where(empty, np.inf, color[..., 3].astype(np.float64) + view.near_mm)
         final = Image(view, depth, np.where(empty, -1, np.rint(color[..., 0])).astype(np.int64),
                       color[..., 1].copy(), color[..., 2].copy())
-        return ScanResult(counts, b_max, final)
+        return ScanResult(counts, b_max, final, snaps)
 
     def max_atlas_px(self):
         return 8192
@@ -456,6 +477,10 @@ class CPURenderer(Renderer):
         ps = pix[last]
         st["z"][ps] = d[last]
         st["color"][ps] = a[last]
+
+    def _scan_depth(self, r0, c0, rows, cols):
+        H, W = self._scan["size"]
+        return self._scan["z"].reshape(H, W)[r0:r0 + rows, c0:c0 + cols].copy()
 
     def _scan_finish(self, counts, b_max):
         st, self._scan = self._scan, None
@@ -644,6 +669,11 @@ class GLRenderer(Renderer):
         self.ctx.depth_func = "<"
         self._scan_prog["stock"].value = 0
         self._draw(self._scan_prog, pos, attrs, rect, self._scan["size"])
+
+    def _scan_depth(self, r0, c0, rows, cols):
+        raw = self._scan["fbo"].read(viewport=(c0, r0, cols, rows), components=1, attachment=-1,
+                                     dtype="f4")
+        return np.frombuffer(raw, np.float32).reshape(rows, cols).astype(np.float64)
 
     def _scan_finish(self, counts, b_max):
         st, self._scan = self._scan, None
