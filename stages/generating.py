@@ -30,6 +30,8 @@ row with :func:`unpack_engagement`.
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pyarrow as pa
 
@@ -113,18 +115,22 @@ def _layer_scene(views, pg, cutting, s_p, f, bounds, wp, mesh, m_tips, m_feed, c
     """Scene of the layers (W, T1 far, T2 far, M, T1 near) for ``views``: layer k of view i is
     window k*n+i.
 
-    Sweep ends within one tool radius (xy) of the window's prediction point use the fine mesh:
-    only they can bound the surface M leaves; the others use the coarse mesh.
+    Sweep ends within one tool radius of the window's prediction point use the fine mesh: only
+    their copies can cross M near the surface it leaves (bands take the finer of their two
+    ends); the others use the coarse mesh.
     """
     n = len(views)
     R = mesh.shape.radius_mm
 
     def fine(w, a, b):
-        return np.stack([np.hypot(*(a - m_tips[w])[:, :2].T) < R,
-                         np.hypot(*(b - m_tips[w])[:, :2].T) < R], axis=1)
+        return np.stack([np.linalg.norm(a - m_tips[w], axis=1) < R,
+                         np.linalg.norm(b - m_tips[w], axis=1) < R], axis=1)
 
     d = np.asarray(views[0].view_dir, float)
-    lo, hi = geo.window_xy_bounds(views)
+    # a sweep can only hide M where it is nearer than M: M lies within R/4 behind the window
+    # centre over an R-wide window, so sweeps are gathered over that depth only (the stock,
+    # farther away by its allowance, keeps the whole range)
+    lo, hi = geo.window_xy_bounds([replace(v, far_mm=min(v.far_mm, 0.25 * R)) for v in views])
     segs = _segments_around(pg, cutting, s_p, f, lo, hi, bounds, gap)
     (w1, a1, b1), (w4, a4, b4), (w2, a2, b2) = segs
     wb = (np.tile(lo, (N_LAYERS, 1)), np.tile(hi, (N_LAYERS, 1)))
