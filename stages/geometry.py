@@ -329,6 +329,35 @@ def sweep_triangles(mesh: EnvelopeMesh, p0, p1, view_dir=None):
     return tris, q, owner
 
 
+def smooth_joints(seg0, seg1, window, radius_mm, tol_mm):
+    """Caps at joints of a smooth chain that the neighbouring sweeps already cover.
+
+    Where segment i ends exactly where segment i+1 (same window) starts and the path turns by
+    less than 2·acos(1 - tol/R), the envelope copy at the joint differs from the union of the
+    two sweeps' bands by at most the tolerance (a wedge of the copy between the two silhouettes),
+    so both copies at the joint can be left out. Envelope copies are the bulk of a sweep's
+    triangles, and CAM output is mostly such chains of short chords. Returns boolean masks
+    (drop_start, drop_end) over the segments.
+    """
+    seg0 = np.asarray(seg0, float).reshape(-1, 3)
+    seg1 = np.asarray(seg1, float).reshape(-1, 3)
+    k = len(seg0)
+    drop_start = np.zeros(k, bool)
+    drop_end = np.zeros(k, bool)
+    if k < 2:
+        return drop_start, drop_end
+    window = np.asarray(window).reshape(-1)
+    d = seg1 - seg0
+    L = np.linalg.norm(d, axis=1)
+    u = d / np.where(L > 1e-12, L, 1.0)[:, None]
+    cos_max = np.cos(2.0 * np.arccos(max(0.0, 1.0 - tol_mm / radius_mm)))
+    joint = ((window[:-1] == window[1:]) & np.all(seg1[:-1] == seg0[1:], axis=1)
+             & (L[:-1] > 1e-9) & (L[1:] > 1e-9) & (np.einsum("ij,ij->i", u[:-1], u[1:]) >= cos_max))
+    drop_end[:-1] = joint
+    drop_start[1:] = joint
+    return drop_start, drop_end
+
+
 def ordered_sweep_scene(mesh: EnvelopeMesh, p0, p1, ident, view_dir=(0.0, 0.0, 1.0), bias=0.0):
     """Sweeps of passes ``p0[k] -> p1[k]`` in the given (execution) order, for ``Renderer.scan``.
 
@@ -342,8 +371,11 @@ def ordered_sweep_scene(mesh: EnvelopeMesh, p0, p1, ident, view_dir=(0.0, 0.0, 1
     p0 = np.asarray(p0, float).reshape(-1, 3)
     p1 = np.asarray(p1, float).reshape(-1, 3)
     tb, qb, ob = sweep_bands(mesh, p0, p1, view_dir=view_dir)
-    t0, q0, _, o0 = envelope_copies(mesh, p0, view_dir=view_dir)
-    t1, q1, _, o1 = envelope_copies(mesh, p1, view_dir=view_dir)
+    drop0, drop1 = smooth_joints(p0, p1, np.zeros(len(p0)), mesh.shape.radius_mm, mesh.tol_mm)
+    t0, q0, _, o0 = envelope_copies(mesh, p0[~drop0], view_dir=view_dir)
+    o0 = np.nonzero(~drop0)[0][o0]
+    t1, q1, _, o1 = envelope_copies(mesh, p1[~drop1], view_dir=view_dir)
+    o1 = np.nonzero(~drop1)[0][o1]
     tris = np.concatenate([tb, t0, t1])
     q = np.concatenate([qb, q0, q1])
     key = np.concatenate([ob * 3, o0 * 3 + 1, o1 * 3 + 2])
@@ -578,6 +610,8 @@ def segment_scene(mesh: EnvelopeMesh, seg0, seg1, window, tri_id, view_dir, bias
     pair = np.repeat(np.arange(k), 3)
     grp = (inv[:, None] * 3 + np.arange(3)[None]).reshape(-1)
     ok = counts[grp] > 0
+    drop0, drop1 = smooth_joints(seg0, seg1, window, mesh.shape.radius_mm, mesh.tol_mm)
+    ok &= ~np.stack([drop0, drop1, np.zeros(k, bool)], 1).reshape(-1)
     if window_bounds is not None and len(tris):
         nz = np.nonzero(counts)[0]
         lo = np.full((ng, 3), np.inf)
