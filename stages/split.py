@@ -118,7 +118,9 @@ def _merge_short(owner, p0, p1, mergeable, merge_max, tol):
     cum = np.cumsum(length)
     run_start = np.flatnonzero(~joins)
     before = np.concatenate(([0.0], cum))[run_start][run]
-    chunk = np.floor((cum - before - 1e-12) / merge_max).astype(np.int64)
+    # merge_max 0 turns merging off: every short move is its own chunk
+    chunk = (np.floor((cum - before - 1e-12) / merge_max).astype(np.int64) if merge_max > 0
+             else np.arange(n))
     key_new = np.ones(n, bool)
     key_new[1:] = (run[1:] != run[:-1]) | (chunk[1:] != chunk[:-1])
     group = np.cumsum(key_new) - 1
