@@ -50,7 +50,8 @@ PARAMS = ("tool", "render")
 
 ID_W, ID_T1, ID_T2, ID_M = 0, 1, 2, 3
 STEEP_DEG = 60.0          # claim 6: re-render along the normal above this contact angle
-PASSES_PER_BATCH = 8
+PASSES_PER_BATCH = 8          # view-correction windows per render
+M_WINDOWS_PER_BATCH = 256     # from-below windows of M per render (bounds the images in memory)
 N_LAYERS = 5
 # view correction steps: (window side in tool radii, zoom over px_per_mm)
 VIEW_STEPS = ((1.0, 2.0), (0.25, 8.0))
@@ -258,56 +259,58 @@ def generating(pg, shape, wp, renderer, px_per_mm, predict_idx, pred_tips, flute
     dirs = pg.p1[predict_idx] - pg.p0[predict_idx]
     u = dirs / np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-12)
     half = R + margin
-    final, tile_of, snaps = _scan_program(pg, shape, wp, renderer, px_per_mm, mesh, predict_idx,
-                                          pred_tips, f, u, zlo, zhi, half)
-    # M at every prediction point, from below, many windows per atlas
-    views = [View((t[0], t[1], 0.0), (0, 0, 1.0), (np.cos(np.radians(a)), np.sin(np.radians(a)), 0.0),
-                  2 * half, 2 * half, px_per_mm, zlo, zhi) for t, a in zip(pred_tips, fd)]
-    tris, q, phi, owner = geo.envelope_copies(mesh, pred_tips, feed_deg=fd, view_dir=(0, 0, 1.0))
-    from stages.render import make_scene
-    mimgs = renderer.render(views, make_scene(tris, owner, ID_M, a=phi, b=q))
+    final, tile_of = _scan_program(pg, shape, wp, renderer, px_per_mm, mesh, predict_idx, pred_tips,
+                                   f, u, zlo, zhi, half, eng, dz, n_phi, tol, fd)
     path_lo, path_hi = pg.s0, pg.s0 + pg.length
     redo = []                                     # (slot, estimated q, phi)
-    for k in range(m):
-        M = mimgs[k]
-        on = M.id >= 0
-        rows, cols = np.nonzero(on)
-        pts = views[k].pixel_points(rows, cols, M.depth[on])
-        fin = final[tile_of[k]]
-        c, r, _ = fin.view.project(pts)
-        hh, ww = fin.id.shape
-        ri = np.clip(np.floor(r).astype(np.int64), 0, hh - 1)
-        ci = np.clip(np.floor(c).astype(np.int64), 0, ww - 1)
-        who = fin.id[ri, ci]
-        # surviving: the final surface there was left by the own path within f + gap of p (the
-        # closed-form strip narrows that to +-f): no other sweep and no stock is in front of M
-        whoc = np.clip(who, 0, None)
-        near = (who >= 0) & (path_lo[whoc] < s_p[k] + f[k] + gap[k]) & (path_hi[whoc] > s_p[k] - f[k] - gap[k])
-        strip = _own_path_strip(M, shape, u[k], fd[k], f[k])
-        surv = np.zeros_like(on)
-        surv[on] = near
-        surv &= strip
-        hview, h = snaps[k]
-        eng[k] = (_engagement(shape, hview, h, pred_tips[k], fd[k], dz, n_phi, tol), dz,
-                  (np.cos(np.radians(fd[k])), np.sin(np.radians(fd[k]))))
-        if surv.any():
-            qk, phik = _angles(M, surv)
-            _store(gen, k, views[k], M, surv, qk, phik, fd[k], "below")
-            if qk > STEEP_DEG:
-                redo.append((k, qk, phik))
-            continue
-        if not _redo_when_lost:
-            continue
+    from stages.render import make_scene
+    for b0 in range(0, m, M_WINDOWS_PER_BATCH):
+        ks = np.arange(b0, min(m, b0 + M_WINDOWS_PER_BATCH))
+        # M at the prediction points, from below, many windows per atlas
+        views = [View((t[0], t[1], 0.0), (0, 0, 1.0), (np.cos(np.radians(a)), np.sin(np.radians(a)), 0.0),
+                      2 * half, 2 * half, px_per_mm, zlo, zhi) for t, a in zip(pred_tips[ks], fd[ks])]
+        tris, q, phi, owner = geo.envelope_copies(mesh, pred_tips[ks], feed_deg=fd[ks], view_dir=(0, 0, 1.0))
+        mimgs = renderer.render(views, make_scene(tris, owner, ID_M, a=phi, b=q))
+        del tris, q, phi, owner
+        for v, M, k in zip(views, mimgs, ks):
+            _from_below(gen, redo, k, v, M, final[tile_of[k]], shape, eng[k][0], dz, n_phi,
+                        s_p[k], f[k], gap[k], u[k], fd[k], path_lo, path_hi)
+    _view_correction(gen, redo, pg, shape, wp, renderer, px_per_mm, cutting, bounds, mesh, coarse,
+                     pred_tips, s_p, f, fd, gap, u)
+    return gen, eng
+
+
+def _from_below(gen, redo, k, view, M, fin, shape, E, dz, n_phi, s_p, f, gap, u, fd, path_lo, path_hi):
+    """Generating point of prediction ``k`` from its from-below window of M and the final surface."""
+    on = M.id >= 0
+    rows, cols = np.nonzero(on)
+    pts = view.pixel_points(rows, cols, M.depth[on])
+    c, r, _ = fin.view.project(pts)
+    hh, ww = fin.id.shape
+    ri = np.clip(np.floor(r).astype(np.int64), 0, hh - 1)
+    ci = np.clip(np.floor(c).astype(np.int64), 0, ww - 1)
+    who = fin.id[ri, ci]
+    # surviving: the final surface there was left by the own path within f + gap of p (the
+    # closed-form strip narrows that to +-f): no other sweep and no stock is in front of M
+    whoc = np.clip(who, 0, None)
+    near = (who >= 0) & (path_lo[whoc] < s_p + f + gap) & (path_hi[whoc] > s_p - f - gap)
+    strip = _own_path_strip(M, shape, u, fd, f)
+    surv = np.zeros_like(on)
+    surv[on] = near
+    surv &= strip
+    if surv.any():
+        qk, phik = _angles(M, surv)
+        _store(gen, k, view, M, surv, qk, phik, fd, "below")
+        if qk > STEEP_DEG:
+            redo.append((k, qk, phik))
+    elif _redo_when_lost:
         # nothing survives from below (steep walls shrink below a pixel, or the pass rolls over
         # an edge): the surface it leaves lies on its own-path strip (the envelope circle
         # perpendicular to the motion) where that strip is in the material before the cut;
         # the mean direction of those engaged points is where to look from (claim 6)
-        est = _strip_estimate(shape, eng[k][0], dz, n_phi, u[k], fd[k])
+        est = _strip_estimate(shape, E, dz, n_phi, u, fd)
         if est is not None:
             redo.append((k, max(est[0], STEEP_DEG), est[1]))
-    _view_correction(gen, redo, pg, shape, wp, renderer, px_per_mm, cutting, bounds, mesh, coarse,
-                     pred_tips, s_p, f, fd, gap, u)
-    return gen, eng
 
 
 def _strip_estimate(shape, E, dz, n_phi, u, feed_deg, width=0.1):
@@ -334,12 +337,14 @@ def _strip_estimate(shape, E, dz, n_phi, u, feed_deg, width=0.1):
             float(np.degrees(np.arctan2(v[1], v[0])) % 360.0))
 
 
-def _scan_program(pg, shape, wp, renderer, px_per_mm, mesh, predict_idx, tips, f, u, zlo, zhi, half):
+def _scan_program(pg, shape, wp, renderer, px_per_mm, mesh, predict_idx, tips, f, u, zlo, zhi, half,
+                  eng, dz, n_phi, tol, fd):
     """One ordered scan of the program per tile: the final surface (which pass leaves which
     pixel) and, at each prediction point, a snapshot of the material left before it (stock,
     every earlier pass, and the own pass up to p - f): the claim-5 cutting region's top.
 
-    Returns (final images per tile, tile index per prediction, [(View, height (rows, cols))]).
+    Each snapshot becomes the prediction's engagement map (``eng[k]``) as soon as it is taken.
+    Returns (final images per tile, tile index per prediction).
     """
     cand = np.nonzero(pg.motion != 0)[0]
     bounds = pg.sweep_bounds(shape)
@@ -350,7 +355,7 @@ def _scan_program(pg, shape, wp, renderer, px_per_mm, mesh, predict_idx, tips, f
         inside = np.all((tips[:, :2] >= lo) & (tips[:, :2] <= hi), axis=1)
         tile_of[inside] = t
     n_side = int(np.ceil(2 * half * px_per_mm))
-    final, snaps = [], [None] * m
+    final = []
     for t, view in enumerate(views):
         lo_w, hi_w = geo.window_xy_bounds([view])
         inside = cand[geo.overlaps(lo_w, hi_w, bounds[cand, 0], bounds[cand, 1])[0]]
@@ -380,17 +385,23 @@ def _scan_program(pg, shape, wp, renderer, px_per_mm, mesh, predict_idx, tips, f
                 j = inside[a:a + PASSES_PER_DRAW]
                 yield geo.ordered_sweep_scene(mesh, pg.p0[j], pg.p1[j], j)
 
-        res = renderer.scan(view, geo.workpiece_scene(wp, [view], -2.0), batches(), len(pg.pass_id), 1)
-        final.append(res.final)
-        for k, rect, depth in zip(mine, rects, res.snapshots):
+        taken = iter(zip(mine, rects))
+
+        def on_snapshot(depth, view=view, taken=taken):
+            k, rect = next(taken)
             right, up, _ = view.basis()
             cx = (rect.col0 + rect.cols / 2 - view.shape[1] / 2) / px_per_mm
             cy = (rect.row0 + rect.rows / 2 - view.shape[0] / 2) / px_per_mm
             ctr = np.asarray(view.center, float) + cx * right + cy * up
             sv = View(tuple(ctr), view.view_dir, view.up, rect.cols / px_per_mm, rect.rows / px_per_mm,
                       px_per_mm, view.near_mm, view.far_mm)
-            snaps[k] = (sv, depth)
-    return final, tile_of, snaps
+            eng[k] = (_engagement(shape, sv, depth, tips[k], fd[k], dz, n_phi, tol), dz,
+                      (np.cos(np.radians(fd[k])), np.sin(np.radians(fd[k]))))
+
+        res = renderer.scan(view, geo.workpiece_scene(wp, [view], -2.0), batches(), len(pg.pass_id), 1,
+                            on_snapshot=on_snapshot)
+        final.append(res.final)
+    return final, tile_of
 
 
 def _view_correction(gen, redo, pg, shape, wp, renderer, px_per_mm, cutting, bounds, mesh, coarse,

@@ -280,7 +280,8 @@ class Renderer:
             i = j
         return images
 
-    def scan(self, view, stock: Scene, batches, n_ids: int, n_bins: int = 20) -> "ScanResult":
+    def scan(self, view, stock: Scene, batches, n_ids: int, n_bins: int = 20,
+             on_snapshot=None) -> "ScanResult":
         """Ordered depth scan of one window: claims 7 and 8 in one render.
 
         The stock is drawn first (its top surface: the farthest stock face, so pixels off the
@@ -297,7 +298,8 @@ class Renderer:
         iterable of scenes (e.g. a generator over pass ranges), each split into draws. A
         :class:`Snapshot` among them records the depth buffer (mm along the view, ``near_mm``
         where nothing is) over its pixel rectangle at that point of the scan: the material left
-        at that moment (``ScanResult.snapshots``, in order).
+        at that moment (``ScanResult.snapshots``, in order; or passed to ``on_snapshot(depth)``
+        as it is taken, so that memory does not grow with the number of snapshots).
         """
         h, w = view.shape
         if max(h, w) > self.max_atlas_px():
@@ -314,7 +316,7 @@ class Renderer:
                 if isinstance(sc, Snapshot):
                     r0, c0 = sc.row0, sc.col0
                     d01 = self._scan_depth(r0, c0, sc.rows, sc.cols)
-                    snaps.append(d01 * (view.far_mm - view.near_mm) + view.near_mm)
+                    (on_snapshot or snaps.append)(d01 * (view.far_mm - view.near_mm) + view.near_mm)
                     continue
                 for a in range(0, len(sc.tris), self.tri_budget):
                     part = Scene(sc.tris[a:a + self.tri_budget], sc.attrs[a:a + self.tri_budget],
