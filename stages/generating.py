@@ -8,23 +8,27 @@ For each predicted pass, at its prediction point p (from ``cut_filter``):
 - T2: everything it sweeps after p + f;
 - W: the stock.
 
-Each is rendered into its own layer of the same window (one atlas holds the layers of many
-passes) and the depth test is completed in numpy: a pixel of M survives when M is nearer than
-W, T1 and T2 there (M "stays in front after T2 is drawn"), and lies over the stock. The surviving
-pixels are the surface this pass leaves; their mean is the generating point C, the mean of their
-φ (circular) and q values are its rotation and contact angle, and the surface normal (out of the
-material) at C follows from φ and q.
+From below (the seed's view, para 0045) the layers W, T1 and T2 of every window together are the
+final surface of the program, which one ordered scan per tile renders once with the pass that left
+each pixel (``Renderer.scan``; see ``cut_filter``). M is rendered alone, many windows per atlas, and
+a pixel of M survives (M "stays in front after T2 is drawn") where the final surface there was left
+by the own path within f + gap of p: no other sweep and no stock lies in front of M. The own path
+within ±(f + gap) is replaced by the closed-form strip of tool positions one tooth feed apart
+(:func:`_own_path_strip`). The surviving pixels are the surface this pass leaves; their mean is
+the generating point C, the mean of their φ (circular) and q values are its rotation and contact
+angle, and the surface normal (out of the material) at C follows from φ and q.
 
 View correction (claim 6, paras 0075-0078): seen from below, a surface with contact angle q is
 foreshortened by cos q, so steep walls shrink below a pixel (the seed loses everything above
 87.6°). When the from-below estimate says q > 60°, or no pixel survives although the pass cuts,
 the window is rendered again looking along the estimated surface normal (the viewer inside the
-material, looking out), zoomed 2× on the estimated generating point, with the depth range
-starting R/2 behind it so only the neighbourhood is seen. The ``view`` column says which
-render gave the row: ``below``, ``normal`` or ``none`` (no surface left by the pass).
+material, looking out), zoomed 2× on the estimated generating point, with W, T1, T2, M and the
+near own path in layers of the same window and the depth test completed in numpy. The ``view``
+column says which render gave the row: ``below``, ``normal`` or ``none`` (no surface left by the
+pass).
 
-Engagement (claim 5): in 3-axis machining the material left after T1 and W is a height field,
-which the from-below depth layers of W and T1 give. Points of the envelope on a grid of axial
+Engagement (claim 5): in 3-axis machining the material left after T1 and W is a height field:
+the depth buffer of the ordered scan just before p - f, read as a snapshot around p. Points of the envelope on a grid of axial
 levels and rotation angles are engaged where they lie below it. Table ``engagement``; decode a
 row with :func:`unpack_engagement`.
 """
