@@ -18,6 +18,11 @@ bounded by the atlas size and the triangle budget per draw, never by the size of
 A view looks along ``view_dir`` (from below: ``+Z``, the material side; seed para 0045). Depth
 is the coordinate along ``view_dir`` measured from the view centre; nearer = smaller.
 
+Besides this one-pass render, :meth:`Renderer.scan` draws a tile's triangles strictly in order
+(the stock, then the sweeps pass after pass) and reports per id the fragments that passed the depth
+test: what each pass cut (claim 7), the final surface with the pass that left each pixel (claim 8),
+and snapshots of the depth buffer mid-scan (the material before a prediction point, claim 5).
+
 Per pixel the result holds the winning triangle's ``id`` (first attribute, an integer stored as
 float: exact up to 2**24) and two interpolated attributes ``a``, ``b`` (e.g. rotation angle φ and
 contact angle q, claim 4), and the depth.
