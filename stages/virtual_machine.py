@@ -54,9 +54,12 @@ import pyarrow as pa
 from stages import InputError
 from stages.gap_geometry import CORNER_DEG, Path3, corner_features, nearest_pass, program_paths  # noqa: F401
 
-N_Z = 30          # micro-edge levels over the ball
-N_PHI = 96        # position angles of the engagement grid
-N_ROT = 96        # spindle angle samples per revolution
+# Grid fine enough that the simulated error has converged: a finishing crescent is only a few
+# tenths of a millimetre wide, and on a coarser grid (30 × 96 × 96) the error jumped by ±5 µm from
+# pass to pass on the seed's cylinder; at 120 × 360 × 192 it is within 0.5 µm of 240 × 720 × 192.
+N_Z = 120         # micro-edge levels over the ball
+N_PHI = 360       # position angles of the engagement grid
+N_ROT = 192       # spindle angle samples per revolution
 PASSAGES = (-1, 0, 1)   # spindle revolutions around the nominal passage that cut each point
 
 EFFECTS = {
@@ -261,7 +264,7 @@ class VirtualMachine:
                   - np.arccos(np.clip(1 - (zc - 0.5 * R / N_Z) / R, -1, 1)))
         return zc, kappa, ds
 
-    def _engagement(self, chunk: int = 256):
+    def _engagement(self, chunk: int = 32):
         """Engaged micro-edges (P, N_Z, N_PHI) at each pass's mid point; memory bounded by ``chunk``."""
         from scipy.spatial import cKDTree
         p = self.path
@@ -329,8 +332,8 @@ class VirtualMachine:
         ibin = np.minimum((phi / (2 * np.pi) * N_PHI).astype(np.int64), N_PHI - 1)
         P = len(p.feed)
         fx, fy = np.zeros((P, N_ROT)), np.zeros((P, N_ROT))
-        for s0 in range(0, P, 256):                              # memory bounded by the chunk
-            sl = slice(s0, min(s0 + 256, P))
+        for s0 in range(0, P, 32):                               # memory bounded by the chunk
+            sl = slice(s0, min(s0 + 32, P))
             fx[sl], fy[sl] = self._forces(sl, cphi, sphi, ibin, rho, kappa, ds)
         return simulate_deflection(fx, p.rpm, self.modes["x"]), simulate_deflection(fy, p.rpm, self.modes["y"])
 
