@@ -36,7 +36,7 @@ def run_tables(workflow: str, until: str, out: Optional[str] = None, workers: Op
     if failed:
         raise InputError(f"{workflow}: the run failed before the gap job could use it: {failed[0]['message']}")
     tabs = {}
-    for name in ("passes", "errors", "deflection"):
+    for name in ("passes", "errors", "deflection", "generating", "engagement"):
         d = r.out / "tables" / name
         files = sorted(d.glob("*.parquet")) if d.is_dir() else []
         if files:
@@ -67,6 +67,170 @@ def read_points(path: str, spec: Measurements, require_deviation: bool = True):
     from stages.measurements import read_measurements
     return read_measurements(path, spec.columns, spec.length_unit, spec.deviation_unit,
                              require_deviation=require_deviation)
+
+
+# ------------------------------------------------------------------------------ the prediction, re-run
+COEFFS = ("ktc", "krc", "kac", "kte", "kre", "kae")
+RUNOUT_GRID_UM = (1.0, 2.0, 4.0, 7.0, 11.0, 16.0, 24.0)   # runout values the prediction is re-run at
+# how each catalogue effect is added to the simulation for "how far"
+HOW_ADDED = {
+    "force_scale": "re-predicted: material ktc…kae × scale, forces → deflection → errors re-run",
+    "runout": "re-predicted: tool.runout_um + e (flute 0 largest; the prediction has no runout phase), "
+              "forces → deflection → errors re-run",
+    "tool_contour": "re-predicted: tool.profile table (contact_deg, error_um) of the fitted dent, errors re-run",
+}
+OFFSET_ADDED = "term along the normal added to the prediction (the machine/tool offset model)"
+
+
+class Predictor:
+    """The pipeline's own prediction downstream of the render, re-run with changed parameters.
+
+    The cached ``generating`` and ``engagement`` tables are reused; ``stages.forces.run`` →
+    ``stages.deflection.run`` (→ ``stages.errors.machining_error`` at the measured points, the
+    errors stage's kernel) are called directly, once per program and parameter set (cached here).
+    ``scale`` is the baseline force-model scale (a reference-part calibration; 1 without one).
+    """
+
+    def __init__(self, tabs: dict, tool: dict, material: dict, machine: dict, scale: float = 1.0,
+                 workdir: Optional[Path] = None):
+        self.tabs = tabs
+        self.tool, self.material, self.machine = dict(tool), dict(material), machine
+        self.scale = float(scale)
+        self.workdir = Path(workdir) if workdir else None
+        self._defl: dict = {}
+        self._n_profiles = 0
+
+    def _deflection(self, prog: str, scale: float, runout_um: float) -> pa.Table:
+        key = (prog, round(scale, 9), round(runout_um, 6))
+        if key not in self._defl:
+            from stages import deflection as dst
+            from stages import forces as fst
+            pick = lambda t: t.filter(pa.compute.equal(t.column("program_id"), prog))  # noqa: E731
+            tool = dict(self.tool, runout_um=runout_um)
+            mat = {k: (float(v) * scale if k in COEFFS and v is not None else v) for k, v in self.material.items()}
+            f = fst.run({"passes": pick(self.tabs["passes"]), "generating": pick(self.tabs["generating"]),
+                         "engagement": pick(self.tabs["engagement"])}, {"tool": tool, "material": mat})["forces"]
+            self._defl[key] = dst.run({"forces": f}, {"machine": self.machine, "tool": tool})["deflection"]
+            if len(self._defl) > 64:
+                self._defl.pop(next(iter(self._defl)))
+        return self._defl[key]
+
+    def profile_csv(self, contour: dict) -> str:
+        """A tool profile table (claim 2, ``contact_deg,error_um``) with the fitted dent added to the
+        workflow's profile, written where ``tool.profile`` can point at it."""
+        from stages.errors import read_profile
+        q = np.round(np.arange(0.0, 90.0 + 1e-9, 0.25), 6)
+        e = contour["a_um"] * np.exp(-0.5 * ((q - contour["q0_deg"]) / contour["width_deg"]) ** 2)
+        if self.tool.get("profile"):
+            pq_, pe_ = read_profile(self.tool["profile"])
+            e = e + np.interp(q, pq_, pe_)
+        if self.workdir is None:
+            import tempfile
+            self.workdir = Path(tempfile.mkdtemp(prefix="gap_"))
+        self.workdir.mkdir(parents=True, exist_ok=True)
+        self._n_profiles += 1
+        path = self.workdir / f"tool_profile_fitted_{self._n_profiles}.csv"
+        path.write_text("contact_deg,error_um\n" + "".join(f"{a:.4f},{b:.6f}\n" for a, b in zip(q, e)))
+        return str(path)
+
+    def tool_for(self, params: dict) -> tuple[dict, float]:
+        """(tool, force scale) of the prediction with the model effects in ``params`` added."""
+        tool = dict(self.tool)
+        if "runout" in params:
+            tool["runout_um"] = float(self.tool.get("runout_um") or 0.0) + max(float(params["runout"]["e_um"]), 0.0)
+        if "tool_contour" in params:
+            tool["profile"] = params["tool_contour"].get("profile_csv") or self.profile_csv(params["tool_contour"])
+        scale = self.scale * float(params.get("force_scale", {}).get("scale", 1.0))
+        return tool, scale
+
+    def at_points(self, F: dict, params: dict, rows: Optional[np.ndarray] = None) -> np.ndarray:
+        """Predicted error (µm) at the measured points ``rows`` with the model effects ``params``
+        (force_scale, runout, tool_contour; others are ignored) added to the simulation."""
+        from stages.gap import _predicted_at_points
+        rows = np.ones(len(F["q_deg"]), bool) if rows is None else rows
+        tool, scale = self.tool_for(params)
+        out = np.zeros(int(np.count_nonzero(rows)))
+        progs = F["program_id"][rows]
+        nrm = np.stack([F["nx"], F["ny"], F["nz"]], 1)[rows]
+        for prog in dict.fromkeys(progs.tolist()):
+            m = progs == prog
+            d = self._deflection(prog, scale, float(tool.get("runout_um") or 0.0))
+            out[m] = _predicted_at_points(d, prog, F["pass_id"][rows][m], F["q_deg"][rows][m],
+                                          F["phi_deg"][rows][m], nrm[m], tool)[0]
+        return out
+
+    def errors_table(self, params: dict) -> pa.Table:
+        """The ``errors`` table re-predicted with the model effects added (errors stage re-run)."""
+        from stages import errors as est
+        tool, scale = self.tool_for(params)
+        out = []
+        for prog in dict.fromkeys(self.tabs["passes"].column("program_id").to_pylist()):
+            pick = lambda t: t.filter(pa.compute.equal(t.column("program_id"), prog))  # noqa: E731
+            d = self._deflection(prog, scale, float(tool.get("runout_um") or 0.0))
+            out.append(est.run({"passes": pick(self.tabs["passes"]), "generating": pick(self.tabs["generating"]),
+                                "deflection": d}, {"tool": tool})["errors"])
+        return pa.concat_tables(out)
+
+
+def make_predictor(tabs: dict, wf, tool: dict, scale: float = 1.0, workdir=None) -> Optional[Predictor]:
+    """A ``Predictor`` when the run has the render tables (generating, engagement) and a machine FRF."""
+    if not all(k in tabs for k in ("generating", "engagement")) or not (wf.machine and wf.machine.frf):
+        return None
+    mat = wf.material_for(tool.get("t") if isinstance(wf.material, list) else None).model_dump()
+    return Predictor(tabs, tool, mat, wf.machine.model_dump(), scale, workdir)
+
+
+def add_model_responses(F: dict, predictor: Optional[Predictor]) -> dict:
+    """The prediction's own response to runout on a grid of e (for the runout effect's signature)."""
+    if predictor is None:
+        return F
+    F = dict(F)
+    base = predictor.at_points(F, {})
+    F["runout_grid_um"] = np.array(RUNOUT_GRID_UM)
+    F["runout_resp_um"] = np.stack([predictor.at_points(F, {"runout": {"e_um": e}}) - base
+                                    for e in RUNOUT_GRID_UM], 1)
+    return F
+
+
+def how_far(F: dict, res: dict, predictor: Optional[Predictor]) -> dict:
+    """Held-out "after" with the chosen effects added to the simulation itself.
+
+    Every spatial fold is predicted with the effects fitted without it: model effects
+    (force_scale, runout, tool_contour) through the re-run prediction (``Predictor``), the others
+    as their term along the normal. Replaces the "after" figures of ``res``; the after of the
+    fitted terms alone is kept as ``rms_after_terms_um``.
+    """
+    from stages.gap import _rms, _shrink_acting, fold_fits
+    chosen = res["_chosen"]
+    res["how_added"] = {e.name: (HOW_ADDED[e.name] if predictor is not None and e.name in HOW_ADDED else OFFSET_ADDED
+                                 if e.name not in HOW_ADDED else "term of the prediction model (no render tables to re-run)")
+                        for e, _ in chosen}
+    if not chosen:
+        return res
+    y, meas = F["residual_um"], F["measured_um"]
+    after, terms_after = np.zeros_like(y), np.zeros_like(y)
+    for test, items in fold_fits(F, y, res["_fold"], chosen):
+        terms = np.zeros(int(test.sum()))
+        offsets = np.zeros_like(terms)
+        model = {}
+        for e, th, b in items:
+            c = e.basis(F, th)[test] @ b
+            terms += c
+            if predictor is not None and e.name in HOW_ADDED:
+                model[e.name] = e.params(b, th)
+            else:
+                offsets += c
+        pred = predictor.at_points(F, model, test) if model else F["predicted_um"][test]
+        after[test] = meas[test] - pred - offsets
+        terms_after[test] = y[test] - terms
+    res["rms_after_terms_um"] = _rms(terms_after)
+    res["rms_after_um"] = _rms(after)
+    res["p95_after_um"] = float(np.percentile(np.abs(after), 95))
+    res["max_after_um"] = float(np.abs(after).max())
+    res["shrink"] = float(1 - res["rms_after_um"] / res["rms_before_um"]) if res["rms_before_um"] > 0 else 0.0
+    res["shrink_where_acting"] = _shrink_acting(y, after, y - terms_after)
+    res["_after"] = after
+    return res
 
 
 # ------------------------------------------------------------------------------ simulate
@@ -123,9 +287,14 @@ def simulate(workflow: str, program: Optional[str], effects: list[str], noise_um
 
 
 # ------------------------------------------------------------------------------ diagnose
-def diagnose_points(F: dict, sigma: Optional[float], floor_um: float = 0.0) -> dict:
+def diagnose_points(F: dict, sigma: Optional[float], floor_um: float = 0.0,
+                    predictor: Optional[Predictor] = None) -> dict:
+    """Diagnosis of associated points: the catalogue (with the prediction's own runout response when
+    a ``predictor`` is given), then "how far" with the effects added to the simulation."""
     from stages.gap import diagnose, where
+    F = add_model_responses(F, predictor)
     res = diagnose(F, sigma, floor_um)
+    res = how_far(F, res, predictor)
     res["where"] = where(F, F["residual_um"], res["sigma_um"], res["_blocks"])
     res["where_after"] = where(F, res["_after"], res["sigma_um"], res["_blocks"])
     return res
@@ -142,11 +311,18 @@ def diagnose_cmd(workflow: str, measurements: str, out: Optional[str] = None) ->
     tool = _tool(wf, tabs["passes"])
     F, rej2 = associate(meas, tabs["passes"], tabs.get("errors"), tool, spec.off_part_mm, tabs.get("deflection"))
     t1 = time.perf_counter()
-    res = diagnose_points(F, spec.noise_um)
-    t2 = time.perf_counter()
     name = Path(measurements).stem
     gdir = outdir / "gap"
     gdir.mkdir(parents=True, exist_ok=True)
+    predictor = make_predictor(tabs, wf, tool, workdir=gdir / "folds")
+    res = diagnose_points(F, spec.noise_um, predictor=predictor)
+    t2 = time.perf_counter()
+    if predictor is not None and any(k in HOW_ADDED for k in res["params"]):
+        # the model with the winning effects, fitted on all points: profile table and errors re-predicted
+        predictor.workdir = gdir
+        if "tool_contour" in res["params"]:
+            res["params"]["tool_contour"]["profile_csv"] = predictor.profile_csv(res["params"]["tool_contour"])
+        pq.write_table(schemas.check("errors", predictor.errors_table(res["params"])), gdir / "errors_updated.parquet")
     for tname, tab in (("gap_points", gap_points_table(F, res["_after"])), ("gap_effects", gap_effects_table(res))):
         d = outdir / "tables" / tname
         d.mkdir(parents=True, exist_ok=True)
@@ -169,10 +345,13 @@ def diagnose_cmd(workflow: str, measurements: str, out: Optional[str] = None) ->
 def public_summary(res: dict) -> dict:
     keys = ("effect", "effects", "params", "where", "where_after", "sigma_um", "n_points", "n_blocks",
             "rms_before_um", "rms_after_um", "p95_before_um", "p95_after_um", "max_before_um", "max_after_um",
-            "shrink", "shrink_where_acting", "ranking")
+            "shrink", "shrink_where_acting", "ranking")  # after: held-out, effects added to the simulation
     out = {k: res[k] for k in keys if k in res}
     out["held_out"] = "K-fold over spatial blocks: every point predicted by the fit without its block"
     out["model_update"] = model_update(res["params"])
+    out["how_added"] = res.get("how_added", {})
+    if "rms_after_terms_um" in res:
+        out["rms_after_terms_um"] = res["rms_after_terms_um"]
     return out
 
 
@@ -185,8 +364,9 @@ def model_update(params: dict) -> dict:
         elif name == "force_scale":
             up["material.*"] = f"multiply ktc, krc, kac, kte, kre, kae by {p['scale']:.4g}"
         elif name == "tool_contour":
-            up["tool.profile"] = (f"add {p['a_um']:.3g}·exp(-((q-{p['q0_deg']:.3g})/{p['width_deg']:.3g})²/2) µm "
-                                  f"to error_um (seed 002 second error)")
+            up["tool.profile"] = p.get("profile_csv") or (
+                f"add {p['a_um']:.3g}·exp(-((q-{p['q0_deg']:.3g})/{p['width_deg']:.3g})²/2) µm "
+                f"to error_um (seed 002 second error)")
         elif name == "tool_wear":
             up["tool.wear_um_per_m"] = p["rate_um_per_m"]
         else:
@@ -336,9 +516,12 @@ def blind_check(workflow: str, cases: int, seed: int, out: Optional[str] = None,
     else:
         from stages.virtual_machine import grid_plan
         pts, nrm = grid_plan(vm)
+    sub_tabs = {k: (v.filter(pa.compute.equal(v.column("program_id"), prog)) if "program_id" in v.column_names else v)
+                for k, v in tabs.items()}
+    predictor = make_predictor(sub_tabs, wf, tool, workdir=outdir / "blind" / "profiles")
     summary = blind_cases(vm, sub, tabs.get("errors"), tool, pts, nrm, cases, seed, noise=noise, pairs=pairs,
                           off_part_mm=spec.off_part_mm, progress=progress, deflection=tabs.get("deflection"),
-                          kinds=_check_kinds(kinds))
+                          kinds=_check_kinds(kinds), predictor=predictor)
     summary["workflow"] = workflow
     bdir = outdir / "blind"
     bdir.mkdir(parents=True, exist_ok=True)
@@ -358,8 +541,13 @@ def _check_kinds(kinds):
 
 def blind_cases(vm, passes: pa.Table, errors: Optional[pa.Table], tool: dict, pts: np.ndarray, nrm: np.ndarray,
                 cases: int, seed: int, noise=(0.3, 1.0), pairs: int = 0, off_part_mm: float = 0.05,
-                kinds: Optional[list] = None, progress=None, deflection: Optional[pa.Table] = None) -> dict:
-    """The blind check on one program: ``cases`` single-effect (or none) cases + ``pairs`` two-effect cases."""
+                kinds: Optional[list] = None, progress=None, deflection: Optional[pa.Table] = None,
+                predictor: Optional[Predictor] = None) -> dict:
+    """The blind check on one program: ``cases`` single-effect (or none) cases + ``pairs`` two-effect cases.
+
+    With a ``predictor`` (the run's render tables), the reference part's force scale s0 becomes the
+    predictor's baseline, the runout signature is the prediction's own response, and "after" is
+    the re-run prediction with the fitted effects (``how_far``)."""
     from stages.gap import associate
     from stages.virtual_machine import EFFECTS
     _FLUTES["n"] = int(tool["flutes"])
@@ -391,6 +579,8 @@ def blind_cases(vm, passes: pa.Table, errors: Optional[pa.Table], tool: dict, pt
     d = F0["pred_deflection_um"]
     s0 = float(1.0 + np.dot(d, F0["residual_um"]) / np.dot(d, d)) if np.dot(d, d) > 0 else 1.0
     F0 = apply_baseline(F0, s0)
+    if predictor is not None:
+        predictor.scale = s0
     sig0 = noise_sigma(F0, F0["residual_um"])
     floor = float(math.sqrt(max(np.mean(F0["residual_um"] ** 2) - sig0 ** 2, 0.0)))
     calibration = {"force_scale_s0": s0, "floor_um": floor, "reference_rms_um": float(np.sqrt(np.mean(F0["residual_um"] ** 2))),
@@ -403,11 +593,12 @@ def blind_cases(vm, passes: pa.Table, errors: Optional[pa.Table], tool: dict, pt
         sigma = float(rng.uniform(*noise))
         err = vm.probe(pts, nrm, truth, sigma, rng)
         F, rej = associate(_meas_table(ids, pts, nrm, err), passes, errors, tool, off_part_mm, deflection)
-        res = diagnose_points(apply_baseline(F, s0), None, floor)
+        res = diagnose_points(apply_baseline(F, s0), None, floor, predictor)
         true_order = _true_order(truth, vm, pts, nrm)
         case = {"case": ci, "truth": truth, "true_order": true_order, "noise_um": sigma,
                 "found": res["effects"], "params": res["params"], "sigma_est_um": res["sigma_um"],
                 "rms_before_um": res["rms_before_um"], "rms_after_um": res["rms_after_um"], "shrink": res["shrink"],
+                "rms_after_terms_um": res.get("rms_after_terms_um"), "how_added": res.get("how_added"),
                 "shrink_where_acting": res["shrink_where_acting"],
                 "n_rejected": len(rej)}
         top = res["effect"]

@@ -26,7 +26,9 @@
 
 Catalogue (signature on r, µm; features as in ``associate``):
 
-- ``runout``: −e·sin q (e ≥ 0, µm)
+- ``runout``: −e·sin q (e ≥ 0, µm); when the caller gives the prediction's own response to runout
+  (``F["runout_resp_um"]``: forces → deflection → errors re-run with tool.runout_um + e on a grid of e),
+  that response (it also holds the changed chip of each flute), interpolated at e
 - ``tool_contour``: a·exp(−½((q − q0)/w)²) (a µm, q0 deg, w deg; + = tool smaller = material left)
 - ``tool_wear``: rate·L (µm per m of cut, ≥ 0)
 - ``thermal_drift``: n·A·(1 − exp(−t/τ)) (A µm per axis, τ s)
@@ -215,8 +217,22 @@ def _q(F):
     return np.radians(F["q_deg"])
 
 
+def runout_response(F, e_um: float) -> np.ndarray:
+    """The prediction's own change per µm of runout at ``e_um`` (tool.runout_um + e re-predicted
+    through forces → deflection → errors: −ρ·sin q and the changed chips), linear between the
+    computed values ``F["runout_grid_um"]`` (0 → no change); −sin q when none was computed."""
+    if "runout_resp_um" not in F:
+        return -np.sin(_q(F))
+    grid = np.concatenate([[0.0], F["runout_grid_um"]])
+    resp = np.hstack([np.zeros((len(F["q_deg"]), 1)), F["runout_resp_um"]])
+    e = float(np.clip(e_um, grid[1], grid[-1]))
+    i = int(np.clip(np.searchsorted(grid, e) - 1, 0, len(grid) - 2))
+    w = (e - grid[i]) / (grid[i + 1] - grid[i])
+    return ((1 - w) * resp[:, i] + w * resp[:, i + 1]) / e
+
+
 _BASIS = {
-    "runout": lambda F, th: (-np.sin(_q(F)))[:, None],
+    "runout": lambda F, th: runout_response(F, th[0] if th else 1.0)[:, None],
     "tool_contour": lambda F, th: np.exp(-0.5 * ((F["q_deg"] - th[0]) / th[1]) ** 2)[:, None],
     "tool_wear": lambda F, th: (F["cut_len_mm"] * 1e-3)[:, None],
     "thermal_drift": lambda F, th: (np.stack([F["nx"], F["ny"], F["nz"]], 1)
@@ -249,7 +265,7 @@ def catalogue(F) -> list[Effect]:
     taus = list(T * np.geomspace(0.02, 10.0, 28))
     lams = list(np.geomspace(0.05, 5.0, 24))
     cat = [
-        Effect("runout", [()], 1),
+        Effect("runout", [(float(e),) for e in F["runout_grid_um"]] if "runout_resp_um" in F else [()], 1),
         Effect("tool_contour", [(a, w) for a in q0s for w in widths], 1),
         Effect("tool_wear", [()], 1),
         Effect("thermal_drift", [(t,) for t in taus], 3),
@@ -403,6 +419,24 @@ def cv_predict(F, y, fold, effects: list, cand: Optional[Effect] = None):
     return pred
 
 
+def fold_fits(F, y, fold, chosen: list) -> list:
+    """The chosen effects fitted without each held-out fold (nonlinear parameters re-fitted on the
+    training blocks): [(test mask, [(Effect, grid value, linear parameters)])]."""
+    out = []
+    for f in range(int(fold.max()) + 1):
+        test = fold == f
+        if not chosen:
+            out.append((test, []))
+            continue
+        ch, th, beta = fit_joint(F, y, ~test, chosen[:-1], chosen[-1][0])
+        items, k = [], 0
+        for e, t in ch + [(chosen[-1][0], th)]:
+            items.append((e, t, beta[k:k + e.n_lin]))
+            k += e.n_lin
+        out.append((test, items))
+    return out
+
+
 def apply_baseline(F: dict, force_scale: float) -> dict:
     """The prediction with its force model scaled (a calibration found on a reference part)."""
     F = dict(F)
@@ -545,7 +579,7 @@ def diagnose(F: dict, noise_um: Optional[float] = None, floor_um: float = 0.0) -
         # the same on the points where the chosen effects act (held-out prediction > 10 % of its peak)
         "shrink_where_acting": _shrink_acting(y, after, base_pred),
         "ranking": ranking,
-        "_after": after, "_contrib": contrib, "_blocks": blk,
+        "_after": after, "_contrib": contrib, "_blocks": blk, "_fold": fold, "_chosen": chosen,
     }
 
 
