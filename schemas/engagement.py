@@ -4,7 +4,8 @@ import pyarrow as pa
 # point (seed 000 claim 5), on a grid of axial levels z_k = (k + 0.5) * dz_mm above the tool tip
 # and rotation angles phi_j = (j + 0.5) * 360 / n_phi degrees, counter-clockwise from the feed
 # direction seen from above. mask = np.packbits of the boolean array E (n_z, n_phi), C order;
-# decode with stages.generating.unpack_engagement(row).
+# decode with stages.generating.unpack_engagement(row). feed_dir_x/y: unit horizontal feed direction;
+# ramp_deg: angle of the feed above the horizontal (+ climbing, - descending), which sets the chip.
 SCHEMA = pa.schema([
     pa.field('program_id', pa.string()),
     pa.field('pass_id', pa.int32()),
@@ -14,4 +15,5 @@ SCHEMA = pa.schema([
     pa.field('mask', pa.binary()),
     pa.field('feed_dir_x', pa.float64()),
     pa.field('feed_dir_y', pa.float64()),
+    pa.field('ramp_deg', pa.float64()),
 ])

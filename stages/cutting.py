@@ -42,6 +42,16 @@ pulls the tool down (Fz < 0). In the feed frame (Lee & Altintas 1996 with ψ = 9
     dFy = −dFr·sin κ·sin φ + dFt·cos φ − dFa·cos κ·sin φ
     dFz = +dFr·cos κ       − dFa·sin κ
 
+Ramps: a pass that climbs or descends moves the tool along the unit vector v = (cos α, 0, sin α)
+in the feed frame (α the ramp angle above the horizontal). The chip of an edge point is the feed
+per tooth along that edge's outward envelope normal u = (sin κ cos φ, sin κ sin φ, −cos κ)::
+
+    h = fz·(v·u) = fz·(cos α·sin κ·cos φ − sin α·cos κ)
+
+which is Altintas' fz·sin ψ·sin κ for a level pass (α = 0); climbing a wall (α → 90°) the ball's
+underside no longer cuts and the side cuts only the small horizontal feed, plunging (α → −90°) the
+underside cuts fz·cos κ. With runout the flutes' radial offsets project on u as Δρ·sin κ.
+
 Chip width and edge length: ``db = dS`` = length of the envelope generator (the tool profile in a
 meridian plane) between the level's bounds, exact for ball, bull-nose and flat side. So for a
 flat end mill db = dS = dz whatever the helix, which is the definition under which Altintas'
@@ -223,15 +233,23 @@ def flute_positions_deg(grid: EdgeGrid, rotation_deg) -> np.ndarray:
     return np.mod(-theta - 360.0 * j / grid.flutes + grid.lag_deg[None, None, :], 360.0)
 
 
-def chip_thickness_mm(fz_mm: float, cos_phi, sin_kappa, rho_mm=None):
-    """Chip thickness of each flute, shape of ``cos_phi`` (…, flutes, n_z), with runout.
+def chip_thickness_mm(fz_mm: float, cos_phi, sin_kappa, rho_mm=None, ramp_deg: float = 0.0):
+    """Chip thickness of each flute, shape of ``cos_phi`` (…, flutes, n_z), with runout and ramp.
 
-    ``h_j = sin κ · max(0, min_m (m·fz·cos φ + ρ_j − ρ_{j+m}))`` (flute j+m passed m tooth periods
-    before j); without runout h = fz·cos φ·sin κ clipped at 0.
+    ``h_j = max(0, min_m (m·fz·(v·u) + (ρ_j − ρ_{j+m})·sin κ))`` with v·u = cos α·sin κ·cos φ −
+    sin α·cos κ (see the module docstring; flute j+m passed m tooth periods before j); on a level
+    pass without runout h = fz·cos φ·sin κ clipped at 0.
     """
     cos_phi = np.asarray(cos_phi, dtype=float)
+    sin_kappa = np.asarray(sin_kappa, dtype=float)
+    if ramp_deg:
+        a = np.radians(float(ramp_deg))
+        cos_kappa = np.sqrt(np.clip(1.0 - sin_kappa ** 2, 0.0, None))   # κ ≤ 90° on the envelope
+        vu = np.cos(a) * sin_kappa * cos_phi - np.sin(a) * cos_kappa
+    else:
+        vu = sin_kappa * cos_phi
     if rho_mm is None or not np.any(rho_mm):
-        return np.maximum(fz_mm * cos_phi, 0.0) * sin_kappa
+        return np.maximum(fz_mm * vu, 0.0)
     n = len(rho_mm)
     j = np.arange(n)
     best = None
@@ -239,9 +257,9 @@ def chip_thickness_mm(fz_mm: float, cos_phi, sin_kappa, rho_mm=None):
         # flute j+1 passes a given φ 360/N before flute j (φ_j = −θ − 360·j/N): j+m is the m-th
         # flute ahead of j, whose surface j cuts when the ones in between missed
         delta = rho_mm[j] - rho_mm[(j + m) % n]                      # (flutes,)
-        cand = m * fz_mm * cos_phi + delta[:, None]
+        cand = m * fz_mm * vu + delta[:, None] * sin_kappa
         best = cand if best is None else np.minimum(best, cand)
-    return np.maximum(best, 0.0) * sin_kappa
+    return np.maximum(best, 0.0)
 
 
 def edge_force_components(cos_phi, sin_phi, kappa_rad, ds_mm, h_mm, coeffs: dict):
@@ -263,7 +281,7 @@ def edge_force_components(cos_phi, sin_phi, kappa_rad, ds_mm, h_mm, coeffs: dict
 
 
 def force_weights(grid: EdgeGrid, n_phi: int, fz_mm: float, coeffs: dict, rotation_deg,
-                  runout_um: float = 0.0):
+                  runout_um: float = 0.0, ramp_deg: float = 0.0):
     """Force of each micro-edge if its cell is engaged, and the cell it reads.
 
     Returns
@@ -278,7 +296,7 @@ def force_weights(grid: EdgeGrid, n_phi: int, fz_mm: float, coeffs: dict, rotati
     phi_rad = np.radians(phi)
     cos_phi, sin_phi = np.cos(phi_rad), np.sin(phi_rad)
     rho = flute_offsets_mm(grid.flutes, runout_um)
-    h = chip_thickness_mm(fz_mm, cos_phi, np.sin(grid.kappa_rad), rho)
+    h = chip_thickness_mm(fz_mm, cos_phi, np.sin(grid.kappa_rad), rho, ramp_deg)
     f = edge_force_components(cos_phi, sin_phi, grid.kappa_rad, grid.ds_mm, h, coeffs)
     bins = np.minimum((phi * (n_phi / 360.0)).astype(np.int64), n_phi - 1)
     cells = np.arange(len(grid.z_mm))[None, None, :] * n_phi + bins
@@ -314,7 +332,7 @@ def _gather_matmul(packed: np.ndarray, cells: np.ndarray, weights: np.ndarray, o
 
 
 def cutting_forces(engaged: np.ndarray, dz_mm: float, fz_mm, tool: dict, coeffs: dict,
-                   rotation_deg=None) -> np.ndarray:
+                   rotation_deg=None, ramp_deg=0.0) -> np.ndarray:
     """Forces on the tool over one revolution for passes sharing one engagement grid.
 
     Parameters
@@ -331,6 +349,8 @@ def cutting_forces(engaged: np.ndarray, dz_mm: float, fz_mm, tool: dict, coeffs:
         ktc, krc, kac (N/mm²), kte, kre, kae (N/mm).
     rotation_deg : array_like, optional
         Spindle angles; default ``rotation_grid_deg(128)``.
+    ramp_deg : float or ndarray (P,), optional
+        Angle of each pass's feed above the horizontal (+ climbing); see the module docstring.
 
     Returns
     -------
@@ -341,13 +361,35 @@ def cutting_forces(engaged: np.ndarray, dz_mm: float, fz_mm, tool: dict, coeffs:
     engaged = np.asarray(engaged, dtype=bool)
     n_pass, n_z, n_phi = engaged.shape
     packed = np.packbits(engaged.reshape(n_pass, -1), axis=1)
-    return cutting_forces_packed(packed, n_z, n_phi, dz_mm, fz_mm, tool, coeffs, rotation_deg)
+    return cutting_forces_packed(packed, n_z, n_phi, dz_mm, fz_mm, tool, coeffs, rotation_deg, ramp_deg)
+
+
+RAMP_STEP_DEG = 0.5     # passes are grouped by ramp angle to this step (h changes by < fz·0.005)
 
 
 def cutting_forces_packed(packed: np.ndarray, n_z: int, n_phi: int, dz_mm: float, fz_mm, tool: dict,
-                          coeffs: dict, rotation_deg=None) -> np.ndarray:
+                          coeffs: dict, rotation_deg=None, ramp_deg=0.0) -> np.ndarray:
     """``cutting_forces`` on grids given as packed bits (P, ceil(n_z·n_phi/8)) uint8, the form the
-    ``engagement`` table stores; memory stays O(chunk), whatever P and the grid size."""
+    ``engagement`` table stores; memory stays O(chunk), whatever P and the grid size. Passes are
+    grouped by ramp angle (``RAMP_STEP_DEG``): the weights depend on it, not on the pass."""
+    packed = np.asarray(packed, dtype=np.uint8)
+    n_pass = packed.shape[0]
+    ramp = np.round(np.broadcast_to(np.asarray(ramp_deg, dtype=float), (n_pass,)) / RAMP_STEP_DEG)
+    if n_pass == 0 or np.all(ramp == ramp[0]):
+        return _forces_one_ramp(packed, n_z, n_phi, dz_mm, fz_mm, tool, coeffs, rotation_deg,
+                                float(ramp[0]) * RAMP_STEP_DEG if n_pass else 0.0)
+    fz = np.broadcast_to(np.asarray(fz_mm, dtype=float), (n_pass,))
+    theta = rotation_grid_deg() if rotation_deg is None else np.asarray(rotation_deg, dtype=float)
+    comp = np.zeros((3, n_pass, len(theta)))
+    uniq, inv = np.unique(ramp, return_inverse=True)
+    for g, value in enumerate(uniq):
+        sel = np.flatnonzero(inv.ravel() == g)
+        comp[:, sel] = np.moveaxis(_forces_one_ramp(packed[sel], n_z, n_phi, dz_mm, fz[sel], tool, coeffs,
+                                                    theta, float(value) * RAMP_STEP_DEG), -1, 0)
+    return np.moveaxis(comp, 0, -1)
+
+
+def _forces_one_ramp(packed, n_z, n_phi, dz_mm, fz_mm, tool, coeffs, rotation_deg, ramp_deg):
     packed = np.asarray(packed, dtype=np.uint8)
     n_pass = packed.shape[0]
     if packed.ndim != 2 or packed.shape[1] != (n_z * n_phi + 7) // 8:
@@ -370,7 +412,7 @@ def cutting_forces_packed(packed: np.ndarray, n_z: int, n_phi: int, dz_mm: float
                     full.lag_deg[active], full.radius_mm, full.flutes)
 
     def weights_for(fz_value, k):
-        w, cells_local = force_weights(grid, n_phi, fz_value, k, theta, runout)
+        w, cells_local = force_weights(grid, n_phi, fz_value, k, theta, runout, ramp_deg)
         # local level index → the level's row in the full grid
         level = np.broadcast_to(np.tile(active, grid.flutes), cells_local.shape)
         cells = level * n_phi + cells_local % n_phi

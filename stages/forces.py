@@ -5,7 +5,7 @@ grid) and the pass's feed per tooth fz = feed_mm_min / (spindle_rpm·flutes) dri
 model of ``stages.cutting``; forces are those **acting on the tool**, sampled at spindle angles
 θ_i = i·360/n_rot (θ = 0: flute 0's tip end points along the feed; the spindle turns clockwise,
 see ``stages.cutting``), rotated from the feed frame to the machine frame with the engagement row's
-feed direction.
+feed direction. Ramps (the engagement row's ``ramp_deg``) change the chip, see ``stages.cutting``.
 """
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from stages import InputError
 from stages import cutting
 
 NAME = "forces"
-VERSION = "1"
+VERSION = "2"
 INPUTS = ("passes", "generating", "engagement")
 OUTPUTS = ("forces",)
 PARAMS = ("tool", "material")
@@ -123,6 +123,12 @@ def run(inputs: dict, params: dict) -> dict:
     fz = cutting.feed_per_tooth_mm(feed, rpm, int(tool["flutes"]))
 
     dz = engagement.column("dz_mm").to_numpy()
+    # feed angle above the horizontal (tables written before ramps were modelled: level passes)
+    ramp = (engagement.column("ramp_deg").to_numpy(zero_copy_only=False).astype(float)
+            if "ramp_deg" in engagement.column_names else np.zeros(len(pass_ids)))
+    if not np.all(np.isfinite(ramp)) or np.any(np.abs(ramp) > 90.0):
+        b = int(np.argmax(~np.isfinite(ramp) | (np.abs(ramp) > 90.0)))
+        raise InputError(f"engagement: pass {pass_ids[b]} has ramp_deg {ramp[b]!r} (needs -90 … 90)")
     n_z = engagement.column("n_z").to_numpy()
     n_phi = engagement.column("n_phi").to_numpy()
     packed, lengths = _mask_bytes(engagement.column("mask"))
@@ -141,7 +147,7 @@ def run(inputs: dict, params: dict) -> dict:
                              f"grid {int(g_nz)}×{int(g_nphi)} (needs dz_mm > 0 and ceil(n_z·n_phi/8) = {n_bytes} bytes)")
         rows_bytes = packed[sel] if isinstance(packed, np.ndarray) else np.stack([packed[i] for i in sel])
         f_g = cutting.cutting_forces_packed(rows_bytes, int(g_nz), int(g_nphi), float(g_dz),
-                                            fz[sel], tool, coeffs, theta)
+                                            fz[sel], tool, coeffs, theta, ramp[sel])
         if len(uniq) == 1:
             forces_feed = f_g                   # one grid for the program (the usual case): no copy
         else:

@@ -47,7 +47,7 @@ from stages.cut_filter import (PASSES_PER_DRAW, coarse_tolerance, fine_tolerance
 from stages.render import Scene, Snapshot, View
 
 NAME = "generating"
-VERSION = "3"
+VERSION = "4"
 INPUTS = ("passes", "stock", "cut_filter", "angle_prune")
 OUTPUTS = ("generating", "engagement")
 PARAMS = ("tool", "render")
@@ -460,6 +460,12 @@ def _store(gen, slot, view, M, mask, q, phi, feed, how):
     gen["view"][slot] = how
 
 
+def ramp_deg(d):
+    """Angle (deg) of each feed vector d (P, 3) above the horizontal; ±90 for a plunge."""
+    d = np.asarray(d, float).reshape(-1, 3)
+    return np.degrees(np.arctan2(d[:, 2], np.hypot(d[:, 0], d[:, 1])))
+
+
 def bilinear(img, cols, rows):
     """``img`` at continuous pixel coordinates (pixel i covers [i, i+1)), bilinear between pixel
     centres and clamped at the border: the engagement boundary then moves continuously with the
@@ -538,5 +544,6 @@ def run(inputs: dict, params: dict) -> dict:
                   "n_phi": pa.array([x[0].shape[1] for x in eng], pa.int32()),
                   "mask": pa.array([np.packbits(x[0].reshape(-1)).tobytes() for x in eng], pa.binary()),
                   "feed_dir_x": pa.array([x[2][0] for x in eng], pa.float64()),
-                  "feed_dir_y": pa.array([x[2][1] for x in eng], pa.float64())})
+                  "feed_dir_y": pa.array([x[2][1] for x in eng], pa.float64()),
+                  "ramp_deg": pa.array(ramp_deg(pg.p1[idx] - pg.p0[idx]), pa.float64())})
     return {"generating": schemas.check("generating", g), "engagement": schemas.check("engagement", e)}

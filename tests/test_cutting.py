@@ -365,3 +365,60 @@ def test_force_record_errors(tmp_path):
     p.write_text("rotation_deg,fx_n,fy_n,fz_n\n" + "0,1,2,3\n" * 6 + "7,1,x,3\n")
     with pytest.raises(InputError, match="rec.csv:8"):
         calibrate.read_force_csv(p)
+
+
+# ------------------------------------------------------------------------------------------------
+# ramps: the chip is the feed per tooth along the edge's envelope normal
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("ramp", [-90.0, -30.0, 0.0, 20.0, 75.0])
+def test_chip_on_a_ramp_is_the_gap_between_consecutive_tooth_spheres(ramp):
+    """Exact geometry: the sphere of the previous tooth, centred fz back along the 3-D feed; the
+    chip at an edge point is how far inside that sphere's surface the point lies along its normal."""
+    R, fz = 5.0, 0.01
+    kap = np.radians(np.linspace(2.0, 90.0, 23))
+    phi = np.radians(np.linspace(0.0, 359.0, 37))
+    K, P = np.meshgrid(kap, phi, indexing="ij")
+    u = np.stack([np.sin(K) * np.cos(P), np.sin(K) * np.sin(P), -np.cos(K)], -1)
+    a = np.radians(ramp)
+    v = np.array([np.cos(a), 0.0, np.sin(a)])
+    # point p = R·u (centre at 0); previous centre −fz·v; distance t from p inward along u to that
+    # sphere: |(R − t)·u + fz·v| = R  →  t = R + fz·v·u − sqrt(R² − fz²·(1 − (v·u)²))
+    vu = u @ v
+    t = R + fz * vu - np.sqrt(R * R - fz * fz * (1 - vu * vu))
+    want = np.maximum(t, 0.0)
+    got = cutting.chip_thickness_mm(fz, np.cos(P), np.sin(K), None, ramp)
+    assert np.allclose(got, want, rtol=0, atol=fz * fz / R)      # first order in fz/R
+    assert want.max() > 0.2 * fz                                  # not a vacuous all-zero case
+
+
+def test_plunging_ball_force_matches_closed_form():
+    """Ball plunging straight down (ramp −90°), whole lower hemisphere in the material: every edge
+    cuts h = fz·cos κ; with two flutes 180° apart the horizontal forces cancel at every angle and
+    Fz = N·R·(Krc·fz·π/4 + Kre − Kac·fz/2 − Kae) (∫cos²κ, ∫cos κ, ∫sin κ cos κ, ∫sin κ over 0…π/2)."""
+    R, fz, N = 5.0, 0.05, 2
+    n_z, n_phi = 400, 360
+    E = np.ones((1, n_z, n_phi), bool)
+    F = cutting.cutting_forces(E, R / n_z, fz, _tool("ball", N, 30.0), KE, ramp_deg=-90.0)[0]
+    want = N * R * (KE["krc"] * fz * np.pi / 4 + KE["kre"] - KE["kac"] * fz / 2 - KE["kae"])
+    assert np.allclose(F[:, 2], want, rtol=2e-3)
+    assert np.abs(F[:, :2]).max() < 1e-6 * abs(want)
+    # the same tool climbing (ramp +90°) cuts nothing with its underside
+    assert np.abs(cutting.cutting_forces(E, R / n_z, fz, _tool("ball", N, 30.0), KE, ramp_deg=90.0)).max() == 0
+
+
+def test_forces_stage_groups_passes_by_ramp():
+    """Rows with different ramps in one table get each their own chip (the stage groups by ramp)."""
+    E, dz = engagement_from_geometry("ball", 10.0, 5.0, 60, 360)
+    ramps = [0.0, -90.0, 30.0]
+    single = [cutting.cutting_forces(E[None], dz, 1200.0 / (8000.0 * 2), _tool("ball", 2, 30.0), KC,
+                                     ramp_deg=r)[0] for r in ramps]
+    eng = pa.table({"program_id": ["p"] * 3, "pass_id": pa.array([0, 1, 2], pa.int32()),
+                    "dz_mm": np.full(3, dz), "n_z": pa.array([60] * 3, pa.int32()),
+                    "n_phi": pa.array([360] * 3, pa.int32()),
+                    "mask": pa.array([cutting.pack_engagement(E)] * 3, pa.binary()),
+                    "feed_dir_x": [1.0] * 3, "feed_dir_y": [0.0] * 3, "ramp_deg": ramps})
+    out = forces_stage.run({"passes": _passes_table(3), "generating": None, "engagement": eng},
+                           {"tool": _tool("ball", 2, 30.0), "material": {"name": "m", **KC}})["forces"]
+    for row, ref in enumerate(single):
+        assert np.allclose(out.column("fz_n")[row].as_py(), ref[:, 2], rtol=1e-5, atol=1e-9)
+    assert not np.allclose(single[0][:, 2], single[1][:, 2])
