@@ -7,12 +7,14 @@ unmodelled effects switched on. It shares nothing with the prediction path (``cu
 
 Model (all vectorised over passes / points)
 -------------------------------------------
-- Engagement: micro-edges of the ball (``N_Z`` levels × ``N_PHI`` position angles) at each pass's
-  mid point are in the material when they lie below the stock (a height field rasterised from the
-  stock mesh, or the box), outside the swept ball of every earlier pass (exact point–segment
-  distance to candidate passes from a KD-tree) and on the front half (chip > 0).
-- Forces: discrete flutes with helix lag; chip ``h_j = sin κ·max(0, min_m(m·fz·cos φ + ρ_j − ρ_{j+m}))``
-  with the flutes' radial offsets ρ_j (runout); Lee–Altintas tangential / radial / axial forces.
+- Engagement: micro-edges of the ball (``N_Z`` levels) and of the cylindrical side up to the
+  stick-out (every ``SHANK_DZ_MM``), × ``N_PHI`` position angles, at each pass's mid point are in
+  the material when they lie below the stock (a height field rasterised from the stock mesh, or
+  the box) and outside the tool (ball and side) swept along every earlier pass (exact distances to
+  the candidate passes from a plan-view KD-tree).
+- Forces: discrete flutes with helix lag; chip ``h_j = max(0, min_m(m·fz·(v·u) + (ρ_j − ρ_{j+m})·sin κ))``
+  with v the 3-D feed direction, u the edge's outward normal (v·u = sin κ cos φ on a level pass)
+  and the flutes' radial offsets ρ_j (runout); Lee–Altintas tangential / radial / axial forces.
 - Dynamics: each mode (x and y) integrated in the time domain with the exact zero-order-hold
   state-transition matrix from rest until the free response has died out; the last revolution is
   the periodic deflection of the pass (no FFT, no frequency-domain compliance).
@@ -60,6 +62,7 @@ from stages.gap_geometry import CORNER_DEG, Path3, corner_features, nearest_pass
 N_Z = 120         # micro-edge levels over the ball
 N_PHI = 360       # position angles of the engagement grid
 N_ROT = 192       # spindle angle samples per revolution
+SHANK_DZ_MM = 0.25  # micro-edge length on the cylindrical side (walls: mm-long straight contacts)
 PASSAGES = (-1, 0, 1)   # spindle revolutions around the nominal passage that cut each point
 
 EFFECTS = {
@@ -231,6 +234,31 @@ def simulate_deflection(force: np.ndarray, rpm: np.ndarray, modes) -> np.ndarray
     return out
 
 
+def _inside_tool(x, a, ab, R, side):
+    """Is point x inside the tool swept along the ball-centre segment a → a + ab (per row)?
+
+    The tool is a ball of radius R on a cylinder of radius R reaching ``side`` above the centre.
+    Ball: distance to the segment < R. Side: for the part of the segment whose centre height lies
+    in [x_z − side, x_z], the plan-view distance to it < R.
+    """
+    ab2 = np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-30)
+    u = np.clip(np.einsum("ij,ij->i", x - a, ab) / ab2, 0, 1)
+    ball = np.linalg.norm(a + u[:, None] * ab - x, axis=1) < R - 1e-6
+    dz = ab[:, 2]
+    flat = np.abs(dz) < 1e-12
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s_a = np.where(flat, 0.0, (x[:, 2] - side - a[:, 2]) / dz)
+        s_b = np.where(flat, 1.0, (x[:, 2] - a[:, 2]) / dz)
+    lo = np.clip(np.minimum(s_a, s_b), 0, 1)
+    hi = np.clip(np.maximum(s_a, s_b), 0, 1)
+    level_ok = np.where(flat, (x[:, 2] >= a[:, 2]) & (x[:, 2] <= a[:, 2] + side),
+                        np.maximum(s_a, s_b) >= 0) & (np.minimum(s_a, s_b) <= 1)
+    abxy2 = np.maximum(np.einsum("ij,ij->i", ab[:, :2], ab[:, :2]), 1e-30)
+    w = np.clip(np.einsum("ij,ij->i", (x - a)[:, :2], ab[:, :2]) / abxy2, lo, hi)
+    cyl = level_ok & (np.linalg.norm(a[:, :2] + w[:, None] * ab[:, :2] - x[:, :2], axis=1) < R - 1e-6)
+    return ball | cyl
+
+
 # ----------------------------------------------------------------------------------- machine model
 class VirtualMachine:
     """One program machined on the virtual machine; effects are applied per call of ``probe``."""
@@ -241,6 +269,8 @@ class VirtualMachine:
         self.R = float(tool["diameter_mm"]) / 2
         self.flutes = int(tool["flutes"])
         self.helix = math.radians(float(tool.get("helix_deg") or 0.0))
+        # the flutes run up the side to the stick-out (the same tool the prediction describes)
+        self.stickout = float(tool.get("stickout_mm") or 4 * self.R)
         self.base_runout = float(tool.get("runout_um") or 0.0)
         self.coeffs = {k: float(material.get(k) or 0.0) for k in ("ktc", "krc", "kac", "kte", "kre", "kae")}
         frf = (machine or {}).get("frf")
@@ -257,53 +287,80 @@ class VirtualMachine:
 
     # -- engagement of every pass at its mid point ------------------------------------------------
     def _edge_grid(self):
+        """Micro-edge levels: N_Z over the ball (uniform in height), then the cylindrical side every
+        SHANK_DZ_MM up to the tool's stick-out. Returns (zc, kappa, ds) per level."""
         R = self.R
         zc = (np.arange(N_Z) + 0.5) * R / N_Z                       # heights above the tip
         kappa = np.arccos(np.clip(1 - zc / R, -1, 1))             # axial immersion = contact angle
         ds = R * (np.arccos(np.clip(1 - (zc + 0.5 * R / N_Z) / R, -1, 1))
                   - np.arccos(np.clip(1 - (zc - 0.5 * R / N_Z) / R, -1, 1)))
-        return zc, kappa, ds
+        n_side = int(np.ceil(max(self.stickout - R, 0.0) / SHANK_DZ_MM))
+        zs = R + (np.arange(n_side) + 0.5) * SHANK_DZ_MM
+        return (np.concatenate([zc, zs]), np.concatenate([kappa, np.full(n_side, np.pi / 2)]),
+                np.concatenate([ds, np.full(n_side, SHANK_DZ_MM)]))
 
-    def _engagement(self, chunk: int = 32):
-        """Engaged micro-edges (P, N_Z, N_PHI) at each pass's mid point; memory bounded by ``chunk``."""
+    def _engagement(self, max_points: int = 400_000):
+        """Engaged micro-edges at each pass's mid point: (P, levels, N_PHI // 8) packed bits.
+
+        A micro-edge is engaged when it lies below the stock's top and outside the tool (ball and
+        cylindrical side up to the stick-out) of every earlier pass. Only the levels below the
+        stock's top around a pass are tested (a finishing pass touches a thin band; a wall pass
+        its height); memory is bounded by ``max_points``.
+        """
         from scipy.spatial import cKDTree
         p = self.path
-        _, kappa, _ = self._edge_grid()
+        R = self.R
+        zc, kappa, _ = self._edge_grid()
+        n_lev = len(zc)
         phi = (np.arange(N_PHI) + 0.5) * 2 * np.pi / N_PHI              # from the feed direction, CCW
         d = p.c1 - p.c0
         P = len(d)
         ln = p.length
-        nsub = np.maximum(1, np.ceil(ln / 0.25).astype(np.int64))
+        mid = 0.5 * (p.c0 + p.c1)
+        ang0 = np.arctan2(d[:, 1], d[:, 0])
+        # levels that can touch the stock: below the highest stock top on the tool's outer ring
+        ring = np.linspace(0.0, 2 * np.pi, 73)[:-1]
+        top = np.max(self.stock_h(mid[:, None, 0] + R * np.cos(ring), mid[:, None, 1] + R * np.sin(ring)), axis=1)
+        top = np.maximum(top, self.stock_h(mid[:, 0], mid[:, 1]))
+        height = top - (mid[:, 2] - R)                                    # above the tip
+        n_of = np.where(np.isfinite(height), np.searchsorted(zc, height, side="right"), 0).astype(np.int64)
+        # earlier passes as exact sub-segments of at most 2 mm, found by their plan-view midpoints
+        nsub = np.maximum(1, np.ceil(ln / 2.0).astype(np.int64))
         sub_owner = np.repeat(np.arange(P), nsub)
-        frac = (np.arange(nsub.sum()) - np.repeat(np.cumsum(nsub) - nsub, nsub) + 0.5) / np.repeat(nsub, nsub)
-        tree = cKDTree(p.c0[sub_owner] + frac[:, None] * d[sub_owner])
-        reach = self.R + 0.5 * float((ln / nsub).max()) + 1e-6
-        eng = np.zeros((P, N_Z, N_PHI), bool)
-        rr = self.R * np.sin(kappa)[None, :, None]
-        for s0 in range(0, P, chunk):
-            sl = slice(s0, min(s0 + chunk, P))
-            mid = 0.5 * (p.c0[sl] + p.c1[sl])
-            ang = np.arctan2(d[sl, 1], d[sl, 0])[:, None, None] + phi[None, None, :]   # machine azimuth
-            pts = np.stack(np.broadcast_arrays(mid[:, None, None, 0] + rr * np.cos(ang),
-                                               mid[:, None, None, 1] + rr * np.sin(ang),
-                                               mid[:, None, None, 2] - self.R * np.cos(kappa)[None, :, None]), -1)
-            flat = pts.reshape(-1, 3)
-            owner = np.repeat(np.arange(sl.start, sl.stop), N_Z * N_PHI)
-            inside = flat[:, 2] < self.stock_h(flat[:, 0], flat[:, 1]) - 1e-9
-            removed = np.zeros(len(flat), bool)
-            cand_idx = np.flatnonzero(inside)
-            if cand_idx.size:
-                # removed by an earlier pass: exact distance to the candidate passes' centre segments
-                sdm = tree.sparse_distance_matrix(cKDTree(flat[cand_idx]), reach, output_type="ndarray")
-                sj, pi = sdm["i"].astype(np.int64), cand_idx[sdm["j"]]
-                prev = sub_owner[sj]
-                ok = prev < owner[pi]
-                pi, prev = pi[ok], prev[ok]
-                a, ab = p.c0[prev], d[prev]
-                u = np.clip(np.einsum("ij,ij->i", flat[pi] - a, ab) / np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-30), 0, 1)
-                dist = np.linalg.norm(a + u[:, None] * ab - flat[pi], axis=1)
-                removed[pi[dist < self.R - 1e-6]] = True
-            eng[sl] = (inside & ~removed).reshape(-1, N_Z, N_PHI)
+        k_sub = np.arange(nsub.sum()) - np.repeat(np.cumsum(nsub) - nsub, nsub)
+        sub_ab = d[sub_owner] / nsub[sub_owner, None]
+        sub_a = p.c0[sub_owner] + k_sub[:, None] * sub_ab
+        tree = cKDTree((sub_a + 0.5 * sub_ab)[:, :2])
+        reach = R + 0.5 * float((ln / nsub).max()) + 1e-6
+        side = self.stickout - R                                          # cylinder above the centre
+        eng = np.zeros((P, n_lev, (N_PHI + 7) // 8), np.uint8)
+        rad = np.where(kappa < np.pi / 2 - 1e-12, R * np.sin(kappa), R)
+        dzc = zc - R                                                      # relative to the centre
+        cost = np.cumsum(n_of * N_PHI)
+        s0 = 0
+        while s0 < P:
+            s1 = int(np.searchsorted(cost, (cost[s0 - 1] if s0 else 0) + max_points, side="right"))
+            s1 = min(max(s1, s0 + 1), P)
+            rows = np.repeat(np.arange(s0, s1), n_of[s0:s1])                 # (pass, level) pairs
+            lev = np.arange(len(rows)) - np.repeat(np.cumsum(n_of[s0:s1]) - n_of[s0:s1], n_of[s0:s1])
+            if len(rows):
+                a_ = ang0[rows][:, None] + phi[None, :]
+                pts = np.stack(np.broadcast_arrays(mid[rows, None, 0] + rad[lev, None] * np.cos(a_),
+                                                   mid[rows, None, 1] + rad[lev, None] * np.sin(a_),
+                                                   mid[rows, None, 2] + dzc[lev, None]), -1).reshape(-1, 3)
+                owner = np.repeat(rows, N_PHI)
+                inside = pts[:, 2] < self.stock_h(pts[:, 0], pts[:, 1]) - 1e-9
+                removed = np.zeros(len(pts), bool)
+                cand_idx = np.flatnonzero(inside)
+                if cand_idx.size:
+                    sdm = tree.sparse_distance_matrix(cKDTree(pts[cand_idx, :2]), reach, output_type="ndarray")
+                    sj, pi = sdm["i"].astype(np.int64), cand_idx[sdm["j"]]
+                    ok = sub_owner[sj] < owner[pi]
+                    pi, sj = pi[ok], sj[ok]
+                    removed[pi[_inside_tool(pts[pi], sub_a[sj], sub_ab[sj], R, side)]] = True
+                E = (inside & ~removed).reshape(-1, N_PHI)
+                eng[rows, lev] = np.packbits(E, axis=1)
+            s0 = s1
         return eng
 
     # -- forces and deflection --------------------------------------------------------------------
@@ -320,6 +377,12 @@ class VirtualMachine:
         return e_um * 1e-3 * np.cos(2 * np.pi * j / self.flutes + math.radians(phase_deg))
 
     def _deflection(self, e_um, phase_deg):
+        fx, fy = self.forces(e_um, phase_deg)
+        return (simulate_deflection(fx, self.path.rpm, self.modes["x"]),
+                simulate_deflection(fy, self.path.rpm, self.modes["y"]))
+
+    def forces(self, e_um: float = 0.0, phase_deg: float = 0.0):
+        """Machine-frame (fx, fy) in N on the tool over one revolution per pass (θ_i = i·360/N_ROT)."""
         p = self.path
         zc, kappa, ds = self._edge_grid()
         Z = self.flutes
@@ -335,29 +398,43 @@ class VirtualMachine:
         for s0 in range(0, P, 32):                               # memory bounded by the chunk
             sl = slice(s0, min(s0 + 32, P))
             fx[sl], fy[sl] = self._forces(sl, cphi, sphi, ibin, rho, kappa, ds)
-        return simulate_deflection(fx, p.rpm, self.modes["x"]), simulate_deflection(fy, p.rpm, self.modes["y"])
+        return fx, fy
 
     def _forces(self, sl, cphi, sphi, ibin, rho, kappa, ds):
-        """Machine-frame (fx, fy) on the tool over one revolution for the passes in ``sl``."""
+        """Machine-frame (fx, fy) on the tool over one revolution for the passes in ``sl``.
+
+        Chip of a micro-edge: the feed per tooth along the 3-D feed direction v, projected on the
+        edge's outward normal u (ball: (sin κ cos φ, sin κ sin φ, −cos κ) in the feed frame; side:
+        κ = 90°), plus the flutes' radial offsets (runout) projected on u.
+        """
         p = self.path
         Z = self.flutes
         fz = p.feed[sl] / (p.rpm[sl] * Z)                                    # (P,)
-        best = None
-        for m in range(1, Z + 1):
-            delta = rho - rho[(np.arange(Z) + m) % Z]
-            cand = m * fz[:, None, None, None] * cphi[None] + delta[None, None, :, None]
-            best = cand if best is None else np.minimum(best, cand)
-        h = np.maximum(best, 0.0) * np.sin(kappa)                            # (P, rot, Z, N_Z)
-        eng = self._engaged[sl][:, np.arange(N_Z)[None, None, :], ibin]       # (P, rot, Z, N_Z)
-        cut = eng & (h > 1e-12)
-        c = self.coeffs
-        ft = (c["ktc"] * h * ds + c["kte"] * ds) * cut
-        fr = (c["krc"] * h * ds + c["kre"] * ds) * cut
-        fa = (c["kac"] * h * ds + c["kae"] * ds) * cut
-        sk, ck = np.sin(kappa), np.cos(kappa)
-        fxf = np.sum(-fr * sk * cphi - ft * sphi - fa * ck * cphi, axis=(2, 3))
-        fyf = np.sum(-fr * sk * sphi + ft * cphi - fa * ck * sphi, axis=(2, 3))
         d = p.c1[sl] - p.c0[sl]
+        alpha = np.arctan2(d[:, 2], np.hypot(d[:, 0], d[:, 1]))
+        E = np.unpackbits(self._engaged[sl], axis=2, count=N_PHI).astype(bool)   # (P, levels, N_PHI)
+        act = np.flatnonzero(E.any(axis=(0, 2)))                             # levels cut by some pass
+        fxf = np.zeros((len(fz), N_ROT))
+        fyf = np.zeros((len(fz), N_ROT))
+        if act.size:
+            cp, sp, ib = cphi[:, :, act], sphi[:, :, act], ibin[:, :, act]
+            sk, ck, dsa = np.sin(kappa[act]), np.cos(kappa[act]), ds[act]
+            vu = (np.cos(alpha)[:, None, None, None] * sk * cp[None]
+                  - np.sin(alpha)[:, None, None, None] * ck)                  # (P, rot, Z, levels)
+            best = None
+            for m in range(1, Z + 1):
+                delta = rho - rho[(np.arange(Z) + m) % Z]
+                cand = m * fz[:, None, None, None] * vu + delta[None, None, :, None] * sk
+                best = cand if best is None else np.minimum(best, cand)
+            h = np.maximum(best, 0.0)
+            eng = E[:, act[None, None, :], ib]                                # (P, rot, Z, levels)
+            cut = eng & (h > 1e-12)
+            c = self.coeffs
+            ft = (c["ktc"] * h * dsa + c["kte"] * dsa) * cut
+            fr = (c["krc"] * h * dsa + c["kre"] * dsa) * cut
+            fa = (c["kac"] * h * dsa + c["kae"] * dsa) * cut
+            fxf = np.sum(-fr * sk * cp - ft * sp - fa * ck * cp, axis=(2, 3))
+            fyf = np.sum(-fr * sk * sp + ft * cp - fa * ck * sp, axis=(2, 3))
         f = np.arctan2(d[:, 1], d[:, 0])[:, None]
         return np.cos(f) * fxf - np.sin(f) * fyf, np.sin(f) * fxf + np.cos(f) * fyf
 
