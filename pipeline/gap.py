@@ -143,9 +143,10 @@ class Predictor:
         scale = self.scale * float(params.get("force_scale", {}).get("scale", 1.0))
         return tool, scale
 
-    def at_points(self, F: dict, params: dict, rows: Optional[np.ndarray] = None) -> np.ndarray:
+    def at_points(self, F: dict, params: dict, rows: Optional[np.ndarray] = None, runout_part: bool = False) -> np.ndarray:
         """Predicted error (µm) at the measured points ``rows`` with the model effects ``params``
-        (force_scale, runout, tool_contour; others are ignored) added to the simulation."""
+        (force_scale, runout, tool_contour; others are ignored) added to the simulation (with
+        ``runout_part``: its runout part −ρ·sin q alone)."""
         from stages.gap import _predicted_at_points
         rows = np.ones(len(F["q_deg"]), bool) if rows is None else rows
         tool, scale = self.tool_for(params)
@@ -156,7 +157,7 @@ class Predictor:
             m = progs == prog
             d = self._deflection(prog, scale, float(tool.get("runout_um") or 0.0))
             out[m] = _predicted_at_points(d, prog, F["pass_id"][rows][m], F["q_deg"][rows][m],
-                                          F["phi_deg"][rows][m], nrm[m], tool)[0]
+                                          F["phi_deg"][rows][m], nrm[m], tool, runout_part)[0]
         return out
 
     def errors_table(self, params: dict) -> pa.Table:
@@ -185,10 +186,15 @@ def add_model_responses(F: dict, predictor: Optional[Predictor]) -> dict:
     if predictor is None:
         return F
     F = dict(F)
-    base = predictor.at_points(F, {})
+    base, base_geo = predictor.at_points(F, {}), predictor.at_points(F, {}, runout_part=True)
+    resp = np.zeros((len(base), len(RUNOUT_GRID_UM), 2))
+    for i, e in enumerate(RUNOUT_GRID_UM):
+        p = {"runout": {"e_um": e}}
+        total = predictor.at_points(F, p) - base
+        resp[:, i, 0] = predictor.at_points(F, p, runout_part=True) - base_geo
+        resp[:, i, 1] = total - resp[:, i, 0]
     F["runout_grid_um"] = np.array(RUNOUT_GRID_UM)
-    F["runout_resp_um"] = np.stack([predictor.at_points(F, {"runout": {"e_um": e}}) - base
-                                    for e in RUNOUT_GRID_UM], 1)
+    F["runout_resp_um"] = resp
     return F
 
 
@@ -659,7 +665,12 @@ def _distinct_sizes(truth: dict, vm, pts, nrm, ratio: float) -> dict:
     first, second = list(truth)
     if size[second] <= 0 or size[first] <= 0:
         return truth
-    return {first: truth[first], second: _scaled(second, truth[second], ratio * size[first] / size[second])}
+    k = ratio * size[first] / size[second]
+    if k > 1.0:
+        # enlarging the second would leave its physical range (a force scale below zero, a servo lag
+        # of 100+ µm): the first is made smaller instead, both stay within their drawn ranges or below
+        return {first: _scaled(first, truth[first], 1.0 / k), second: truth[second]}
+    return {first: truth[first], second: _scaled(second, truth[second], k)}
 
 
 def _meas_table(ids, pts, nrm, err) -> pa.Table:

@@ -148,8 +148,11 @@ def associate(meas: pa.Table, passes: pa.Table, errors: Optional[pa.Table], tool
     return F, rejected
 
 
-def _predicted_at_points(deflection, program_id, pass_ids, q, phi, normal, tool):
-    """Prediction model at each point: deflection of its pass read at the point's φ, projected on its n."""
+def _predicted_at_points(deflection, program_id, pass_ids, q, phi, normal, tool, runout_part: bool = False):
+    """Prediction model at each point: deflection of its pass read at the point's φ, projected on its n.
+
+    Returns (error, deflection + runout part, shape part); with ``runout_part`` the first item is
+    the runout part alone (−ρ·sin q of the flute that leaves the surface)."""
     from stages.errors import machining_error, read_profile
     from stages.forces import list_values
     z = np.zeros(len(q))
@@ -169,7 +172,8 @@ def _predicted_at_points(deflection, program_id, pass_ids, q, phi, normal, tool)
     z_c = R * (1 - np.cos(np.radians(q)))
     profile = read_profile(tool["profile"]) if tool.get("profile") else None
     res = machining_error(dx, dy, phi, q, normal, z_c, tool, profile)
-    return (np.nan_to_num(res["err_um"]), np.nan_to_num(res["err_deflection_um"] + res["err_runout_um"]),
+    return (np.nan_to_num(res["err_runout_um" if runout_part else "err_um"]),
+            np.nan_to_num(res["err_deflection_um"] + res["err_runout_um"]),
             np.nan_to_num(res["err_shape_um"]))
 
 
@@ -219,12 +223,13 @@ def _q(F):
 
 def runout_response(F, e_um: float) -> np.ndarray:
     """The prediction's own change per µm of runout at ``e_um`` (tool.runout_um + e re-predicted
-    through forces → deflection → errors: −ρ·sin q and the changed chips), linear between the
-    computed values ``F["runout_grid_um"]`` (0 → no change); −sin q when none was computed."""
+    through forces → deflection → errors), linear between the computed values
+    ``F["runout_grid_um"]`` (0 → no change): (n, 2) = the flute's −ρ·sin q and the rest (the
+    deflection changed by the flutes' unequal chips). (n, 1) = −sin q when none was computed."""
     if "runout_resp_um" not in F:
-        return -np.sin(_q(F))
+        return -np.sin(_q(F))[:, None]
     grid = np.concatenate([[0.0], F["runout_grid_um"]])
-    resp = np.hstack([np.zeros((len(F["q_deg"]), 1)), F["runout_resp_um"]])
+    resp = np.concatenate([np.zeros((len(F["q_deg"]), 1, 2)), F["runout_resp_um"]], axis=1)
     e = float(np.clip(e_um, grid[1], grid[-1]))
     i = int(np.clip(np.searchsorted(grid, e) - 1, 0, len(grid) - 2))
     w = (e - grid[i]) / (grid[i + 1] - grid[i])
@@ -232,7 +237,7 @@ def runout_response(F, e_um: float) -> np.ndarray:
 
 
 _BASIS = {
-    "runout": lambda F, th: runout_response(F, th[0] if th else 1.0)[:, None],
+    "runout": lambda F, th: runout_response(F, th[0] if th else 1.0),
     "tool_contour": lambda F, th: np.exp(-0.5 * ((F["q_deg"] - th[0]) / th[1]) ** 2)[:, None],
     "tool_wear": lambda F, th: (F["cut_len_mm"] * 1e-3)[:, None],
     "thermal_drift": lambda F, th: (np.stack([F["nx"], F["ny"], F["nz"]], 1)
@@ -245,7 +250,9 @@ _BASIS = {
                                                 F["nx"] * F["tip_y_mm"], F["nx"] * F["tip_z_mm"], F["ny"] * F["tip_z_mm"]], 1),
 }
 _PARAMS = {
-    "runout": lambda b, th: {"e_um": float(b[0])},
+    # with the prediction's response: e (geometric part) and e·s (the deflection part scales with
+    # the force model: its own coefficient, = e when the force model is right)
+    "runout": lambda b, th: {"e_um": float(b[0])} if len(b) == 1 else {"e_um": float(b[0]), "e_force_um": float(b[1])},
     "tool_contour": lambda b, th: {"a_um": float(b[0]), "q0_deg": float(th[0]), "width_deg": float(th[1])},
     "tool_wear": lambda b, th: {"rate_um_per_m": float(b[0])},
     "thermal_drift": lambda b, th: {"ax_um": float(b[0]), "ay_um": float(b[1]), "az_um": float(b[2]), "tau_s": float(th[0])},
@@ -265,7 +272,8 @@ def catalogue(F) -> list[Effect]:
     taus = list(T * np.geomspace(0.02, 10.0, 28))
     lams = list(np.geomspace(0.05, 5.0, 24))
     cat = [
-        Effect("runout", [(float(e),) for e in F["runout_grid_um"]] if "runout_resp_um" in F else [()], 1),
+        (Effect("runout", [(float(e),) for e in F["runout_grid_um"]], 2) if "runout_resp_um" in F
+         else Effect("runout", [()], 1)),
         Effect("tool_contour", [(a, w) for a in q0s for w in widths], 1),
         Effect("tool_wear", [()], 1),
         Effect("thermal_drift", [(t,) for t in taus], 3),
@@ -303,8 +311,9 @@ def fit_effects(F, y, train, chosen: list, cand: Effect):
         G = np.block([[Gbb, base.T @ Xc], [Xc.T @ base, Xc.T @ Xc]])
         g = np.concatenate([gb, Xc.T @ yt])
         beta = np.linalg.lstsq(G, g, rcond=None)[0]
-        if cand.name in NONNEG and beta[-1] < 0:
-            beta = np.concatenate([np.linalg.lstsq(Gbb, gb, rcond=None)[0] if len(gb) else np.zeros(0), [0.0]])
+        if cand.name in NONNEG and beta[len(gb)] < 0:
+            beta = np.concatenate([np.linalg.lstsq(Gbb, gb, rcond=None)[0] if len(gb) else np.zeros(0),
+                                   np.zeros(cand.n_lin)])
         sse = yy - 2 * beta @ g + beta @ G @ beta
         return float(sse), beta
 
@@ -391,10 +400,11 @@ def fit_joint(F, y, train, chosen: list, cand: Effect):
         th, _ = fit_effects(F, y, sub, chosen, cand)
     X = np.hstack([e.basis(F, t) for e, t in chosen] + [cand.basis(F, th)])
     beta = np.linalg.lstsq(X[train], y[train], rcond=None)[0]
-    if cand.name in NONNEG and beta[-1] < 0 and chosen:
-        Xb = X[:, :-1]
-        beta = np.concatenate([np.linalg.lstsq(Xb[train], y[train], rcond=None)[0], [0.0]])
-    elif cand.name in NONNEG and beta[-1] < 0:
+    k = X.shape[1] - cand.n_lin                    # the candidate's first linear parameter
+    if cand.name in NONNEG and beta[k] < 0 and chosen:
+        Xb = X[:, :k]
+        beta = np.concatenate([np.linalg.lstsq(Xb[train], y[train], rcond=None)[0], np.zeros(cand.n_lin)])
+    elif cand.name in NONNEG and beta[k] < 0:
         beta = np.zeros(X.shape[1])
     return chosen, th, beta
 

@@ -202,11 +202,11 @@ def test_servo_corner_signature_decays_from_the_corner(rigid, sample, ref):
     assert np.max(np.abs(expect)) > 3.0            # the plan does reach the corners
 
 
-def test_force_scale_scales_the_deflection_part(sample):
+def test_force_scale_scales_the_deflection_part(sample, rigid):
     from stages.virtual_machine import VirtualMachine
     passes, pts, nrm = sample
     soft = VirtualMachine(passes, TOOL, MAT, SOFT, str(SAMPLE / "stock.stl"))
-    stiff = VirtualMachine(passes, TOOL, MAT, RIGID, str(SAMPLE / "stock.stl"))
+    stiff = rigid
     dfl = soft.probe(pts, nrm) - stiff.probe(pts, nrm)
     assert np.percentile(np.abs(dfl), 90) > 1.0    # deflection matters on this part
     d = soft.probe(pts, nrm, {"force_scale": {"scale": 1.6}}) - soft.probe(pts, nrm)
@@ -236,6 +236,44 @@ def test_small_blind_check_names_effects_and_none(rigid, sample):
     # (README), not asserted on two cases
     pairs = [c for c in s["cases_detail"] if len(c["truth"]) == 2]
     assert len(pairs) == 2 and all(set(c["truth"]) <= set(c["found"]) for c in pairs)
+
+
+class _LinearVM:
+    """Stand-in for the virtual machine whose effects add known patterns (for the pair generator)."""
+    def __init__(self, n=200):
+        g = np.random.default_rng(5)
+        self.pat = {"runout": g.normal(size=n), "force_scale": g.normal(size=n), "servo_corner": g.normal(size=n)}
+
+    def probe(self, pts, nrm, eff, noise=0.0, rng=None):
+        out = np.zeros(len(pts))
+        for k, v in eff.items():
+            amp = v["scale"] - 1.0 if k == "force_scale" else v["e_um"] if k == "runout" else v["a_um"]
+            out += amp * self.pat[k]
+        return out
+
+
+@pytest.mark.parametrize("truth", [
+    {"runout": {"e_um": 10.0, "phase_deg": 0.0}, "force_scale": {"scale": 0.5}},      # second must grow: a
+    {"force_scale": {"scale": 0.4}, "servo_corner": {"a_um": 10.0, "lambda_mm": 1.0}},  # scale < 0 before
+    {"runout": {"e_um": 2.0, "phase_deg": 0.0}, "servo_corner": {"a_um": 20.0, "lambda_mm": 1.0}},
+])
+def test_pair_sizes_are_in_order_and_physical(truth):
+    """Pairs: the second effect's RMS is `ratio` × the first's, with a force scale > 0 and no
+    amplitude beyond its drawn value (the first is made smaller when the second would have to grow)."""
+    from pipeline.gap import _distinct_sizes, _true_order
+    vm = _LinearVM()
+    pts = np.zeros((200, 3))
+    out = _distinct_sizes(truth, vm, pts, pts, 0.6)
+    rms = {k: float(np.sqrt(np.mean(vm.probe(pts, pts, {k: v}) ** 2))) for k, v in out.items()}
+    first, second = list(truth)
+    assert rms[second] == pytest.approx(0.6 * rms[first], rel=1e-9)
+    assert _true_order(out, vm, pts, pts) == [first, second]
+    for k, v in out.items():
+        if k == "force_scale":
+            assert 0 < v["scale"] and abs(v["scale"] - 1) <= abs(truth[k]["scale"] - 1) + 1e-12
+        else:
+            amp = "e_um" if k == "runout" else "a_um"
+            assert abs(v[amp]) <= abs(truth[k][amp]) + 1e-12
 
 
 # ------------------------------------------------------------------------------------ CLI
@@ -284,6 +322,14 @@ def test_cli_run_simulate_diagnose_end_to_end_on_two_rows(tmp_path):
     g = tmp_path / "out" / "gap"
     s = json.loads((g / "summary.json").read_text())
     assert s["effect"] == "runout" and abs(s["params"]["runout"]["e_um"] - 10.0) <= 2.0
+    # how far: the runout was added to the simulation itself (tool.runout_um) and the errors stage
+    # re-run: its runout part at every generating point is ±e·sin q of the flute left (e: the fit)
+    assert s["how_added"]["runout"].startswith("re-predicted")
+    upd = pq.read_table(g / "errors_updated.parquet")
+    e_fit = s["params"]["runout"]["e_um"]
+    q = np.radians(upd.column("contact_deg").to_numpy())
+    assert np.allclose(np.abs(upd.column("err_runout_um").to_numpy()), e_fit * np.sin(q), atol=1e-6)
+    assert np.mean(upd.column("err_runout_um").to_numpy() < 0) > 0.9    # mostly the long flute
     assert s["rms_after_um"] < 0.5 * s["rms_before_um"] and s["shrink"] == pytest.approx(1 - s["rms_after_um"] / s["rms_before_um"])
     assert s["where"] and all(k in s["where"][0] for k in ("bbox_mm", "pass_range", "contact_deg", "time_s", "mean_residual_um"))
     assert "residual_map.png" in (g / "index.html").read_text() and (g / "residual_map.png").stat().st_size > 10_000
