@@ -586,42 +586,54 @@ def segment_scene(mesh: EnvelopeMesh, seg0, seg1, window, tri_id, view_dir, bias
     key = np.concatenate([seg0, seg1, fine_ends], 1)
     uniq, inv = np.unique(key, axis=0, return_inverse=True)
     inv = inv.reshape(-1)
+    nu = len(uniq)
     f0, f1 = uniq[:, 6] > 0.5, uniq[:, 7] > 0.5
+    # which (window, part) pairs are drawn, decided before any triangle is built: part 0/1 = the
+    # copy at the start/end, 2 = the silhouette bands; a copy lies within the mesh's box moved to
+    # its point, the bands within the union of the two copies' boxes (conservative bounds)
+    pair = np.repeat(np.arange(k), 3)
+    grp = (inv[:, None] * 3 + np.arange(3)[None]).reshape(-1)
+    ok = np.ones(3 * k, bool)
+    drop0, drop1 = smooth_joints(seg0, seg1, window, mesh.shape.radius_mm, mesh.tol_mm)
+    ok &= ~np.stack([drop0, drop1, np.zeros(k, bool)], 1).reshape(-1)
+    if window_bounds is not None:
+        flat = mesh.tris.reshape(-1, 3)
+        mlo, mhi = flat.min(0) - mesh.tol_mm, flat.max(0) + mesh.tol_mm     # the true envelope's box
+        lo = np.empty((nu, 3, 3))
+        hi = np.empty((nu, 3, 3))
+        lo[:, 0], hi[:, 0] = uniq[:, 0:3] + mlo, uniq[:, 0:3] + mhi
+        lo[:, 1], hi[:, 1] = uniq[:, 3:6] + mlo, uniq[:, 3:6] + mhi
+        lo[:, 2], hi[:, 2] = np.minimum(lo[:, 0], lo[:, 1]), np.maximum(hi[:, 0], hi[:, 1])
+        lo, hi = lo.reshape(-1, 3), hi.reshape(-1, 3)
+        wlo, whi = (np.asarray(a_, float) for a_ in window_bounds)
+        w = window[pair]
+        ok &= ((lo[grp, 0] <= whi[w, 0]) & (hi[grp, 0] >= wlo[w, 0])
+               & (lo[grp, 1] <= whi[w, 1]) & (hi[grp, 1] >= wlo[w, 1]))
+    need = np.zeros(3 * nu, bool)
+    need[grp[ok]] = True
+    need = need.reshape(nu, 3)
     parts_t, parts_q, parts_g = [], [], []
     for end, flags in ((0, f0), (1, f1)):
         pts = uniq[:, 3 * end:3 * end + 3]
-        for m_, sel in ((mesh, np.nonzero(flags)[0]), (coarse_mesh, np.nonzero(~flags)[0])):
+        for m_, sel in ((mesh, np.nonzero(flags & need[:, end])[0]), (coarse_mesh, np.nonzero(~flags & need[:, end])[0])):
             if len(sel):
                 t_, q_, _, o_ = envelope_copies(m_, pts[sel], view_dir=view_dir)
                 parts_t.append(t_), parts_q.append(q_), parts_g.append(sel[o_] * 3 + end)
     # the bands use the finer mesh of the two ends (cracks, if any, stay below that tolerance)
-    for m_, sel in ((mesh, np.nonzero(f0 | f1)[0]), (coarse_mesh, np.nonzero(~(f0 | f1))[0])):
+    for m_, sel in ((mesh, np.nonzero((f0 | f1) & need[:, 2])[0]), (coarse_mesh, np.nonzero(~(f0 | f1) & need[:, 2])[0])):
         if len(sel):
             t_, q_, o_ = sweep_bands(m_, uniq[sel, :3], uniq[sel, 3:6])
             parts_t.append(t_), parts_q.append(q_), parts_g.append(sel[o_] * 3 + 2)
+    if not parts_t:
+        return Scene.concat([])
     tris = np.concatenate(parts_t)
     q = np.concatenate(parts_q)
     group = np.concatenate(parts_g)
     order = np.argsort(group, kind="stable")
     tris, q, group = tris[order], q[order], group[order]
-    ng = 3 * len(uniq)
-    starts = np.searchsorted(group, np.arange(ng + 1))
+    starts = np.searchsorted(group, np.arange(3 * nu + 1))
     counts = np.diff(starts)
-    pair = np.repeat(np.arange(k), 3)
-    grp = (inv[:, None] * 3 + np.arange(3)[None]).reshape(-1)
-    ok = counts[grp] > 0
-    drop0, drop1 = smooth_joints(seg0, seg1, window, mesh.shape.radius_mm, mesh.tol_mm)
-    ok &= ~np.stack([drop0, drop1, np.zeros(k, bool)], 1).reshape(-1)
-    if window_bounds is not None and len(tris):
-        nz = np.nonzero(counts)[0]
-        lo = np.full((ng, 3), np.inf)
-        hi = np.full((ng, 3), -np.inf)
-        lo[nz] = np.minimum.reduceat(tris.min(1), starts[nz], axis=0)
-        hi[nz] = np.maximum.reduceat(tris.max(1), starts[nz], axis=0)
-        wlo, whi = (np.asarray(a, float) for a in window_bounds)
-        w = window[pair]
-        ok &= ((lo[grp, 0] <= whi[w, 0]) & (hi[grp, 0] >= wlo[w, 0])
-               & (lo[grp, 1] <= whi[w, 1]) & (hi[grp, 1] >= wlo[w, 1]))
+    ok &= counts[grp] > 0
     pair, grp = pair[ok], grp[ok]
     cnt = counts[grp]
     idx = ragged_ranges(starts[:-1][grp], cnt)
