@@ -4,7 +4,9 @@ The gap sample job (``workflows/gap.yaml``; its prediction comes from the engine
 once first) is probed by the virtual machine at ~100,000 plan points (contact points at 300
 fractions of every cutting chord, from ``scripts/make_gap_samples.py``) with thermal drift and
 0.5 µm noise; the timed part is what ``pipeline diagnose`` does after reading the file:
-association + features, the held-out effect ranking with the greedy/swap selection, the where-map.
+association + features, the prediction re-run for the runout signature (forces → deflection →
+errors at 7 runout values), the held-out effect ranking with the greedy/swap selection, "how far"
+(each fold re-fitted; model effects re-predicted through the stages), the where-map.
 
     python bench/bench_gap.py [--points 100000]
 """
@@ -26,7 +28,7 @@ def main():
     ap.add_argument("--points", type=int, default=100_000)
     args = ap.parse_args()
     from pipeline.config import load_workflow
-    from pipeline.gap import _meas_table, diagnose_points, run_tables
+    from pipeline.gap import _meas_table, diagnose_points, make_predictor, run_tables
     from stages.gap import associate
     from stages.virtual_machine import VirtualMachine
     spec = importlib.util.spec_from_file_location("mk", ROOT / "scripts" / "make_gap_samples.py")
@@ -47,11 +49,12 @@ def main():
     t0 = time.perf_counter()
     F, rej = associate(meas, tabs["passes"], tabs.get("errors"), tool, 0.05, tabs.get("deflection"))
     t1 = time.perf_counter()
-    res = diagnose_points(F, None)
+    res = diagnose_points(F, None, predictor=make_predictor(tabs, wf, tool))
     t2 = time.perf_counter()
     out = {"points": int(len(pts)), "passes": int(tabs["passes"].num_rows), "rejected": len(rej),
            "associate_s": round(t1 - t0, 2), "diagnose_s": round(t2 - t1, 2), "total_s": round(t2 - t0, 2),
-           "effect": res["effect"], "effects": res["effects"], "shrink": round(res["shrink"], 3)}
+           "effect": res["effect"], "effects": res["effects"], "params": res["params"], "shrink": round(res["shrink"], 3),
+           "how_added": res.get("how_added")}
     print(json.dumps(out, indent=2))
 
 

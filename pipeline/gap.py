@@ -595,13 +595,14 @@ def blind_cases(vm, passes: pa.Table, errors: Optional[pa.Table], tool: dict, pt
         truth = {k: random_case(rng, k, ctx) for k in kinds_i if k != "none"}
         if len(truth) == 2:
             # an order of size must exist: the second effect is rescaled to 45-75 % of the first's RMS
-            truth = _distinct_sizes(truth, vm, pts, nrm, float(rng.uniform(0.45, 0.75)))
+            truth = _distinct_sizes(truth, vm, pts, nrm, float(rng.uniform(0.45, 0.75)), ctx)
         sigma = float(rng.uniform(*noise))
         err = vm.probe(pts, nrm, truth, sigma, rng)
         F, rej = associate(_meas_table(ids, pts, nrm, err), passes, errors, tool, off_part_mm, deflection)
         res = diagnose_points(apply_baseline(F, s0), None, floor, predictor)
         true_order = _true_order(truth, vm, pts, nrm)
         case = {"case": ci, "truth": truth, "true_order": true_order, "noise_um": sigma,
+                "true_rms_um": _true_sizes(truth, vm, pts, nrm) if len(truth) >= 2 else None,
                 "found": res["effects"], "params": res["params"], "sigma_est_um": res["sigma_um"],
                 "rms_before_um": res["rms_before_um"], "rms_after_um": res["rms_after_um"], "shrink": res["shrink"],
                 "rms_after_terms_um": res.get("rms_after_terms_um"), "how_added": res.get("how_added"),
@@ -659,7 +660,32 @@ def _scaled(name: str, params: dict, k: float) -> dict:
     return out
 
 
-def _distinct_sizes(truth: dict, vm, pts, nrm, ratio: float) -> dict:
+def _growth_limit(name: str, params: dict, ctx: Optional[dict]) -> float:
+    """How much an effect's amplitude may grow and stay within the range ``random_case`` draws from."""
+    if name == "force_scale":
+        s = params["scale"]
+        return (3.5 - 1.0) / (s - 1.0) if s > 1 else (1.0 - 1.0 / 3.5) / max(1.0 - s, 1e-12)
+    if ctx is None:
+        return 1.0
+    if name == "runout":
+        return 15.0 / max(params["e_um"], 1e-12)
+    if name == "tool_contour":
+        return 12.0 / max(abs(params["a_um"]), 1e-12)
+    if name == "tool_wear":
+        return 15.0 / max(params["rate_um_per_m"] * ctx["cut_len_mm"] * 1e-3, 1e-12)
+    if name == "thermal_drift":
+        return 25.0 / max(math.sqrt(params["ax_um"] ** 2 + params["ay_um"] ** 2 + params["az_um"] ** 2), 1e-12)
+    if name == "servo_corner":
+        return 30.0 / max(abs(params["a_um"]), 1e-12)
+    if name == "machine_geometry":
+        tip, g = ctx["tips"], params
+        disp = np.stack([g["sx"] * tip[:, 0] + g["exy"] * tip[:, 1] + g["exz"] * tip[:, 2],
+                         g["sy"] * tip[:, 1] + g["eyz"] * tip[:, 2], g["sz"] * tip[:, 2]], 1)
+        return 20.0 / max(float(np.linalg.norm(disp, axis=1).max()), 1e-12)   # µm/mm × mm = µm
+    return 1.0
+
+
+def _distinct_sizes(truth: dict, vm, pts, nrm, ratio: float, ctx: Optional[dict] = None) -> dict:
     base = vm.probe(pts, nrm, {}, 0.0)
     size = {k: float(np.sqrt(np.mean((vm.probe(pts, nrm, {k: v}, 0.0) - base) ** 2))) for k, v in truth.items()}
     first, second = list(truth)
@@ -667,9 +693,10 @@ def _distinct_sizes(truth: dict, vm, pts, nrm, ratio: float) -> dict:
         return truth
     k = ratio * size[first] / size[second]
     if k > 1.0:
-        # enlarging the second would leave its physical range (a force scale below zero, a servo lag
-        # of 100+ µm): the first is made smaller instead, both stay within their drawn ranges or below
-        return {first: _scaled(first, truth[first], 1.0 / k), second: truth[second]}
+        # the second grows only up to the top of its drawn range (beyond it: a force scale below
+        # zero, a servo lag of 100+ µm); the first is made smaller for the rest
+        g = min(k, max(_growth_limit(second, truth[second], ctx), 1.0))
+        return {first: _scaled(first, truth[first], g / k), second: _scaled(second, truth[second], g)}
     return {first: truth[first], second: _scaled(second, truth[second], k)}
 
 
@@ -679,12 +706,17 @@ def _meas_table(ids, pts, nrm, err) -> pa.Table:
                      "t_s": np.full(len(err), np.nan)})
 
 
+def _true_sizes(truth: dict, vm, pts, nrm) -> dict:
+    """RMS (µm) of each effect's own signature on the measured points (noise-free, alone)."""
+    base = vm.probe(pts, nrm, {}, 0.0)
+    return {k: float(np.sqrt(np.mean((vm.probe(pts, nrm, {k: v}, 0.0) - base) ** 2))) for k, v in truth.items()}
+
+
 def _true_order(truth: dict, vm, pts, nrm) -> list:
-    """Effects of a case ordered by the RMS of their own signature on the surface (noise-free)."""
+    """Effects of a case ordered by the RMS of their own signature on the measured points (noise-free)."""
     if len(truth) <= 1:
         return list(truth)
-    base = vm.probe(pts, nrm, {}, 0.0)
-    size = {k: float(np.sqrt(np.mean((vm.probe(pts, nrm, {k: v}, 0.0) - base) ** 2))) for k, v in truth.items()}
+    size = _true_sizes(truth, vm, pts, nrm)
     return sorted(size, key=lambda k: -size[k])
 
 
