@@ -19,10 +19,11 @@
    parameters — with the nonlinear parameters of those already chosen re-fitted; then one swap pass
    and a backward check (every kept effect must still pass both tests given the others). The order
    of size is the RMS of each effect's fitted contribution.
-4. ``how far``: held-out predictions (each point predicted by the fit without its block) of the
-   prediction plus the chosen effects' terms (the same model with the effect added: tool profile,
-   force scale on the deflection term, machine offsets): RMS, P95, max before and after, and the
-   same on the points where the effects act.
+4. ``how far``: held-out predictions (each point predicted by the fit without its block, nonlinear
+   parameters re-fitted: ``fold_fits``) with the chosen effects added; here as the effects' terms.
+   The caller (``pipeline.gap.how_far``) re-runs the prediction itself for the model effects
+   (force scale, runout, tool profile table) and adds the offset effects' terms: RMS, P95, max
+   before and after, and the same on the points where the effects act.
 
 Catalogue (signature on r, µm; features as in ``associate``):
 
