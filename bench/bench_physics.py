@@ -7,7 +7,7 @@ finishing cut), random feed directions, a few feeds and spindle speeds, two mode
 The timed part is exactly what the engine runs per program partition: the three ``run`` calls,
 tables in, tables out (list columns included).
 
-    python bench/bench_physics.py [--passes 100000] [--n-z 48] [--n-phi 360] [--runout 5]
+    python bench/bench_physics.py [--passes 100000] [--n-z 180] [--n-phi 360] [--runout 5]
 """
 from __future__ import annotations
 
@@ -72,7 +72,8 @@ def build_inputs(n_pass: int, n_z: int, n_phi: int, runout_um: float, seed: int 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--passes", type=int, default=100_000)
-    ap.add_argument("--n-z", type=int, default=48)
+    # the generating stage's grid: R/180 levels over the ball, 1° bins
+    ap.add_argument("--n-z", type=int, default=180)
     ap.add_argument("--n-phi", type=int, default=360)
     ap.add_argument("--runout", type=float, default=5.0)
     args = ap.parse_args()

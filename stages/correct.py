@@ -52,7 +52,7 @@ import pyarrow as pa
 from stages import InputError
 
 NAME = "correct"
-VERSION = "2"
+VERSION = "3"
 INPUTS = ("blocks", "passes", "errors")
 OUTPUTS = ("corrected",)
 # only the clip limit changes the table; tol_um and max_iter steer the engine's rounds and the LN /
@@ -66,6 +66,11 @@ _EPS_UM = 1e-9
 # refinement of the vertex move (see vertex_moves); about 4× the contact-angle accuracy of the
 # generating stage (≤ 0.5° RMS, issue 3)
 NORMAL_TOL_DEG = 2.0
+# the refinement moves a vertex at most this many times the larger of its two errors: realising two
+# different errors along normals θ apart takes Δe / sin θ along the weak direction, and on the
+# sample's pocket wall (normals 2.5° apart where the wall's slope changes) a 4 µm difference asked
+# for ~100 µm, hit the move limit and lifted the top of the wall line instead of moving it in
+REFINE_MAX_RATIO = 2.0
 _PLANE_AXES_LUT = np.zeros((20, 3), np.int64)
 for _pl, _ax in _PLANE_AXES.items():
     _PLANE_AXES_LUT[_pl] = _ax
@@ -98,7 +103,9 @@ def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True):
     1 − cos(:data:`NORMAL_TOL_DEG`): a mode of clearly different normals is solved exactly (F → G⁻¹),
     normals closer than the tolerance are treated as one (the difference of two nearly parallel
     normals is within the accuracy of the predicted normals and would amplify error noise by
-    1/sin(angle)); there the para 0084 move (the mean) stays.
+    1/sin(angle)); there the para 0084 move (the mean) stays. The refinement is limited to
+    :data:`REFINE_MAX_RATIO` times the larger error (a vertex is not moved far along the direction
+    both passes barely see).
 
     Parameters
     ----------
@@ -145,7 +152,11 @@ def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True):
     gain = np.where(mu > 1e-12, mu / (mu ** 2 + mu_tol ** 2), 0.0)        # f(μ)/μ
     coef = np.einsum("vki,vk->vi", vec, r) * gain                           # per mode
     ab = np.einsum("vki,vi->vk", vec, coef)                                 # (α, β)
-    return m + ab[:, :1] * na + ab[:, 1:] * nb
+    extra = ab[:, :1] * na + ab[:, 1:] * nb
+    cap = REFINE_MAX_RATIO * np.maximum(np.abs(wa * err_a), np.abs(wb * err_b))
+    size = np.linalg.norm(extra, axis=1)
+    extra *= np.minimum(1.0, cap / np.maximum(size, 1e-30))[:, None]
+    return m + extra
 
 
 def _errors_per_pass(passes: pa.Table, errors: pa.Table):
