@@ -115,7 +115,7 @@ class Predictor:
                 self._defl.pop(next(iter(self._defl)))
         return self._defl[key]
 
-    def profile_csv(self, contour: dict) -> str:
+    def profile_csv(self, contour: dict, name: Optional[str] = None) -> str:
         """A tool profile table (claim 2, ``contact_deg,error_um``) with the fitted dent added to the
         workflow's profile, written where ``tool.profile`` can point at it."""
         from stages.errors import read_profile
@@ -129,7 +129,7 @@ class Predictor:
             self.workdir = Path(tempfile.mkdtemp(prefix="gap_"))
         self.workdir.mkdir(parents=True, exist_ok=True)
         self._n_profiles += 1
-        path = self.workdir / f"tool_profile_fitted_{self._n_profiles}.csv"
+        path = self.workdir / (name or f"tool_profile_fitted_{self._n_profiles}.csv")
         path.write_text("contact_deg,error_um\n" + "".join(f"{a:.4f},{b:.6f}\n" for a, b in zip(q, e)))
         return str(path)
 
@@ -327,7 +327,8 @@ def diagnose_cmd(workflow: str, measurements: str, out: Optional[str] = None) ->
         # the model with the winning effects, fitted on all points: profile table and errors re-predicted
         predictor.workdir = gdir
         if "tool_contour" in res["params"]:
-            res["params"]["tool_contour"]["profile_csv"] = predictor.profile_csv(res["params"]["tool_contour"])
+            res["params"]["tool_contour"]["profile_csv"] = predictor.profile_csv(res["params"]["tool_contour"],
+                                                                                 "tool_profile_fitted.csv")
         pq.write_table(schemas.check("errors", predictor.errors_table(res["params"])), gdir / "errors_updated.parquet")
     for tname, tab in (("gap_points", gap_points_table(F, res["_after"])), ("gap_effects", gap_effects_table(res))):
         d = outdir / "tables" / tname
