@@ -63,6 +63,7 @@ N_Z = 120         # micro-edge levels over the ball
 N_PHI = 360       # position angles of the engagement grid
 N_ROT = 192       # spindle angle samples per revolution
 SHANK_DZ_MM = 0.25  # micro-edge length on the cylindrical side (walls: mm-long straight contacts)
+PROBE_PASSES = 3    # passes whose tooth passages a probe point is tested against (the nearest ones)
 PASSAGES = (-1, 0, 1)   # spindle revolutions around the nominal passage that cut each point
 
 EFFECTS = {
@@ -447,56 +448,93 @@ class VirtualMachine:
         R, Z = self.R, self.flutes
         n = normals / np.linalg.norm(normals, axis=1, keepdims=True)
         cstar = pts + R * n
-        row, u, _ = nearest_pass(p, cstar)
-        d = p.c1 - p.c0
-        ln = p.length
-        T = 60.0 / p.rpm[row]
-        t_star = p.t0[row] + u * (p.t1[row] - p.t0[row])
-        v = ln[row] / np.maximum(p.t1[row] - p.t0[row], 1e-12)             # mm/s along the pass
-        q = np.degrees(np.arccos(np.clip(n[:, 2], -1, 1)))
-        alpha = np.arctan2(-n[:, 1], -n[:, 0])                              # azimuth of the contact point
-        feed_ang = np.arctan2(d[row, 1], d[row, 0])
-        phi_c = (alpha - feed_ang) % (2 * np.pi)                            # from the feed direction
-        zc = R * (1 - n[:, 2].clip(-1, 1))
-        lag = zc * math.tan(self.helix) / R
+        rows, us = self._near_passes(cstar, PROBE_PASSES)
         ro = effects.get("runout", {})
         e_um, ph = float(ro.get("e_um", 0.0)), float(ro.get("phase_deg", 0.0))
         rho = self.flute_offsets(e_um + self.base_runout, ph)
         scale = float(effects.get("force_scale", {}).get("scale", 1.0))
         dx_rev, dy_rev = self.deflection(e_um, ph, scale)
-        best = np.full(len(pts), np.inf)
-        theta_star = (360.0 * t_star / T) % 360.0
-        for j in range(Z):
-            # spindle angle at which flute j passes φ_C at height zc: φ = −θ − 360 j/Z + lag
-            th = np.degrees(-phi_c - 2 * np.pi * j / Z + lag) % 360.0
-            dt0 = ((th - theta_star + 180.0) % 360.0 - 180.0) / 360.0 * T
-            # deflection at that spindle angle (periodic linear interpolation)
-            fi = th / 360.0 * N_ROT
-            i0 = np.floor(fi).astype(np.int64) % N_ROT
-            w = fi - np.floor(fi)
-            i1 = (i0 + 1) % N_ROT
-            ddx = (1 - w) * dx_rev[row, i0] + w * dx_rev[row, i1]
-            ddy = (1 - w) * dy_rev[row, i0] + w * dy_rev[row, i1]
-            for m in PASSAGES:
-                t = t_star + dt0 + m * T
-                s_along = u * ln[row] + (t - t_star) * v
-                c = self._centre_at(p.s0[row] + s_along)
-                off = np.stack([ddx, ddy, np.zeros_like(ddx)], 1) * 1e-3
-                off += rho[j] * np.stack([np.cos(alpha), np.sin(alpha), np.zeros_like(alpha)], 1)
-                radius = np.full(len(pts), R)
-                off += self._machine_offsets(effects, c, row, s_along / ln[row], t)
-                radius -= self._radius_loss(effects, q, row, s_along, t) * 1e-3
-                cp = c + off - pts
-                a = np.einsum("ij,ij->i", cp, n)
-                perp2 = np.einsum("ij,ij->i", cp, cp) - a * a
-                disc = radius * radius - perp2
-                s_lo = np.where(disc >= 0, a - np.sqrt(np.maximum(disc, 0)), np.inf)
-                best = np.minimum(best, s_lo)
+
+        def surface(row, u):
+            d = p.c1 - p.c0
+            ln = p.length
+            T = 60.0 / p.rpm[row]
+            t_star = p.t0[row] + u * (p.t1[row] - p.t0[row])
+            v = ln[row] / np.maximum(p.t1[row] - p.t0[row], 1e-12)             # mm/s along the pass
+            q = np.degrees(np.arccos(np.clip(n[:, 2], -1, 1)))
+            alpha = np.arctan2(-n[:, 1], -n[:, 0])                              # azimuth of the contact point
+            feed_ang = np.arctan2(d[row, 1], d[row, 0])
+            phi_c = (alpha - feed_ang) % (2 * np.pi)                            # from the feed direction
+            zc = R * (1 - n[:, 2].clip(-1, 1))
+            lag = zc * math.tan(self.helix) / R
+            best = np.full(len(pts), np.inf)
+            theta_star = (360.0 * t_star / T) % 360.0
+            for j in range(Z):
+                # spindle angle at which flute j passes φ_C at height zc: φ = −θ − 360 j/Z + lag
+                th = np.degrees(-phi_c - 2 * np.pi * j / Z + lag) % 360.0
+                dt0 = ((th - theta_star + 180.0) % 360.0 - 180.0) / 360.0 * T
+                # deflection at that spindle angle (periodic linear interpolation)
+                fi = th / 360.0 * N_ROT
+                i0 = np.floor(fi).astype(np.int64) % N_ROT
+                w = fi - np.floor(fi)
+                i1 = (i0 + 1) % N_ROT
+                ddx = (1 - w) * dx_rev[row, i0] + w * dx_rev[row, i1]
+                ddy = (1 - w) * dy_rev[row, i0] + w * dy_rev[row, i1]
+                for m in PASSAGES:
+                    t = t_star + dt0 + m * T
+                    s_along = u * ln[row] + (t - t_star) * v
+                    c = self._centre_at(p.s0[row] + s_along)
+                    off = np.stack([ddx, ddy, np.zeros_like(ddx)], 1) * 1e-3
+                    off += rho[j] * np.stack([np.cos(alpha), np.sin(alpha), np.zeros_like(alpha)], 1)
+                    radius = np.full(len(pts), R)
+                    off += self._machine_offsets(effects, c, row, s_along / ln[row], t)
+                    radius -= self._radius_loss(effects, q, row, s_along, t) * 1e-3
+                    cp = c + off - pts
+                    a = np.einsum("ij,ij->i", cp, n)
+                    perp2 = np.einsum("ij,ij->i", cp, cp) - a * a
+                    disc = radius * radius - perp2
+                    s_lo = np.where(disc >= 0, a - np.sqrt(np.maximum(disc, 0)), np.inf)
+                    best = np.minimum(best, s_lo)
+            return best
+
+        # the surface is the deepest cut of the passes whose centres pass nearest (a point between
+        # two rows, or at a pass end, may be finished by the neighbour)
+        best = np.min(np.stack([surface(rows[:, k], us[:, k]) for k in range(rows.shape[1])]), axis=0)
         err = best * 1e3
         if noise_um > 0:
             rng = rng or np.random.default_rng()
             err = err + rng.normal(0.0, noise_um, len(err))
         return err
+
+    def _near_passes(self, cstar, k_pass: int):
+        """The ``k_pass`` distinct passes whose centre segments are nearest each point: (rows, u)."""
+        from scipy.spatial import cKDTree
+        p = self.path
+        ln = p.length
+        nsub = np.maximum(1, np.ceil(ln / 0.25).astype(np.int64))
+        owner = np.repeat(np.arange(len(ln)), nsub)
+        frac = (np.arange(nsub.sum()) - np.repeat(np.cumsum(nsub) - nsub, nsub) + 0.5) / np.repeat(nsub, nsub)
+        kk = min(32, len(owner))
+        _, cand = cKDTree(p.c0[owner] + frac[:, None] * (p.c1 - p.c0)[owner]).query(cstar, k=kk)
+        cand = owner[np.asarray(cand).reshape(len(cstar), kk)]
+        a, ab = p.c0[cand], (p.c1 - p.c0)[cand]
+        u = np.clip(np.einsum("pkj,pkj->pk", cstar[:, None, :] - a, ab)
+                    / np.maximum(np.einsum("pkj,pkj->pk", ab, ab), 1e-30), 0, 1)
+        dist = np.linalg.norm(a + u[..., None] * ab - cstar[:, None, :], axis=2)
+        # one entry per pass (its nearest sub-sample), later passes first among ties
+        score = dist - 1e-7 * cand / max(len(ln), 1)
+        o = np.argsort(cand + score / (score.max() + 1.0) * 0.5, axis=1)
+        cs = np.take_along_axis(cand, o, 1)
+        first = np.concatenate([np.ones((len(cand), 1), bool), cs[:, 1:] != cs[:, :-1]], axis=1)
+        sc = np.where(first, np.take_along_axis(score, o, 1), np.inf)
+        pick = np.argsort(sc, axis=1)[:, :k_pass]
+        rows = np.take_along_axis(cs, pick, 1)
+        uu = np.take_along_axis(np.take_along_axis(u, o, 1), pick, 1)
+        # fewer distinct passes than asked: repeat the nearest
+        bad = ~np.isfinite(np.take_along_axis(sc, pick, 1))
+        rows = np.where(bad, rows[:, :1], rows)
+        uu = np.where(bad, uu[:, :1], uu)
+        return rows, uu
 
     def _centre_at(self, s_glob):
         """Nominal ball centre at path length ``s_glob`` along the cutting moves (continues into the

@@ -1,0 +1,170 @@
+"""Closed loop of the whole pipeline on the sample mould, checked on the gap issue's virtual machine
+(issue 5 must-show on the samples; a bench, not a CI test: minutes per band on llvmpipe).
+
+For each probe window on ``data_samples/nc/mould_finish_t1.nc`` (the raster rows crossing it, each
+cut to the moves within ``MARGIN_MM`` of it, as a program of their own: the sample's header, then
+per row piece a retract, rapid, plunge and the row's lines verbatim; the windows lie on the pocket
+walls and the boss, where the error is):
+
+1. ``pipeline run`` predicts the error of every pass (render → forces → deflection → errors, the
+   sample workflow's tool, material, machine FRF table, stock and prune) and writes the corrected
+   program after ``correct.max_iter`` rounds (1 and 3);
+2. the original and the corrected programs are machined on ``stages/virtual_machine.py`` (discrete
+   flutes, time-domain dynamics of the modes it picks from the same FRF table, its own engagement on
+   the semi-finished stock; no prediction code) and probed inside the window on its own plan
+   (``grid_plan``, 0.1 mm along the passes' contact lines);
+3. the error is the probed surface minus the original program machined on a rigid machine (cusps and
+   feed marks, which no path correction removes, are not counted).
+
+    python3 bench/closed_loop_pipeline_samples.py [--out DIR] [X0 X1 Y0 Y1 ...]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+PROGRAM = ROOT / "data_samples/nc/mould_finish_t1.nc"
+WINDOWS = ((22.0, 32.0, 41.0, 45.0), (68.0, 78.0, 41.0, 45.0), (54.0, 62.0, 53.0, 57.0))
+MARGIN_MM = 6.0          # passes machined on the VM: within this of the window (they shape its surface)
+
+
+def window_program(src: bytes, x0: float, x1: float, y0: float, y1: float) -> bytes:
+    """The raster rows of the program with Y in [y0, y1], each cut to its moves with X in [x0, x1],
+    as a program of their own: the sample's header, then per row a retract, a rapid to the row
+    piece's start, a plunge at the row's feed and the row's lines verbatim."""
+    from stages.parse import parse_program
+    lines = src.decode().splitlines()
+    blocks, _ = parse_program(src, PROGRAM.name, "window")
+    col = lambda c: blocks.column(c).to_numpy(zero_copy_only=False)  # noqa: E731
+    line_no, mot = col("line_no"), col("motion")
+    xa, xb, ya, yb, za = col("x0_mm"), col("x1_mm"), col("y0_mm"), col("y1_mm"), col("z0_mm")
+    keep = ((mot != 0) & (ya == yb) & (ya >= y0) & (ya <= y1)
+            & (np.minimum(xa, xb) >= x0) & (np.maximum(xa, xb) <= x1))
+    idx = np.flatnonzero(keep)
+    if idx.size == 0:
+        raise SystemExit(f"no cutting move inside x {x0}-{x1}, y {y0}-{y1}")
+    # a new piece wherever the kept moves are not consecutive blocks
+    starts = idx[np.concatenate([[True], np.diff(idx) > 1])]
+    ends = idx[np.concatenate([np.diff(idx) > 1, [True]])]
+    out = lines[:int(line_no[0]) - 1]                       # %, O-number, comments, G90…, T, S
+    out.append(f"(WINDOW X{x0:g}-{x1:g} Y{y0:g}-{y1:g} OF {PROGRAM.name}: {len(starts)} ROW PIECES)")
+    for s_, e_ in zip(starts, ends):
+        out += ["G0 Z25.000", f"X{xa[s_]:.3f} Y{ya[s_]:.3f}", f"Z{za[s_] + 2:.3f}",
+                f"G1 Z{za[s_]:.3f} F{col('feed_mm_min')[s_]:g}"]
+        out += lines[int(line_no[s_]) - 1:int(line_no[e_])]
+    out += ["G0 Z25.000", "M5", "M30", "%", ""]
+    return "\n".join(out).encode()
+
+
+def workflow(root: Path, max_iter: int) -> Path:
+    import yaml
+    wf = yaml.safe_load((ROOT / "workflows/mould.yaml").read_text())
+    for k in ("stock", "nominal"):
+        wf[k] = str(ROOT / wf[k])
+    wf["tool"]["profile"] = str(ROOT / wf["tool"]["profile"])
+    wf["machine"]["frf"]["table"] = str(ROOT / wf["machine"]["frf"]["table"])
+    wf.pop("until", None)
+    # one output (cache) for both runs: the three-round run takes round 1 from the cache
+    wf.update({"name": "band", "programs": "nc/*.nc", "output": "out"})
+    wf["correct"] = {**wf["correct"], "max_iter": max_iter}
+    p = root / f"wf{max_iter}.yaml"
+    p.write_text(yaml.safe_dump(wf))
+    return p
+
+
+def vm_errors(window, programs: dict, wf: dict) -> dict:
+    import pyarrow as pa
+    from stages.parse import parse_program
+    from stages.split import split_blocks
+    from stages.virtual_machine import VirtualMachine, grid_plan
+    x0, x1, y0, y1 = window
+    tool = {k: v for k, v in wf["tool"].items() if k != "profile"}    # the VM's tool is nominal too
+    split = {"split": wf["split"], "machine": wf["machine"], "tool": tool}
+
+    def near(passes):
+        g = lambda c: passes.column(c).to_numpy()  # noqa: E731
+        lo, hi = np.minimum(g("x0_mm"), g("x1_mm")), np.maximum(g("x0_mm"), g("x1_mm"))
+        ylo, yhi = np.minimum(g("y0_mm"), g("y1_mm")), np.maximum(g("y0_mm"), g("y1_mm"))
+        m = (hi > x0 - MARGIN_MM) & (lo < x1 + MARGIN_MM) & (yhi > y0 - MARGIN_MM) & (ylo < y1 + MARGIN_MM)
+        return passes.filter(pa.array(m))
+
+    def machine(text, rigid):
+        frf = ({a: [{"fn_hz": 900.0, "zeta": 0.03, "k_n_per_um": 1e9}] for a in "xy"} if rigid
+               else {"table": wf["machine"]["frf"]["table"]})
+        b, _ = parse_program(text, "vm.nc", "band")
+        return VirtualMachine(near(split_blocks(b, split)), tool, wf["material"], {"frf": frf}, wf["stock"])
+
+    ideal_vm = machine(programs["original"], True)
+    pts, nrm = grid_plan(ideal_vm, 0.1)
+    ok = (pts[:, 0] >= x0) & (pts[:, 0] < x1) & (pts[:, 1] >= y0) & (pts[:, 1] < y1)
+    pts, nrm = pts[ok], nrm[ok]
+    ideal = ideal_vm.probe(pts, nrm)
+    q = np.degrees(np.arccos(np.clip(nrm[:, 2], -1, 1)))
+    out = {"points": int(len(pts)), "q_p50_deg": float(np.median(q)), "q_p90_deg": float(np.percentile(q, 90))}
+    for name, text in programs.items():
+        e = machine(text, False).probe(pts, nrm) - ideal
+        out[name] = {"rms_um": float(np.sqrt(np.mean(e ** 2))), "p95_abs_um": float(np.percentile(np.abs(e), 95)),
+                     "max_abs_um": float(np.abs(e).max())}
+    return out
+
+
+def main():
+    import yaml
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--out", default="/tmp/closed_loop_pipeline_samples")
+    ap.add_argument("--keep", action="store_true", help="keep the pipeline's cache of an earlier run")
+    ap.add_argument("window", nargs="*", type=float)
+    args = ap.parse_args()
+    wins = [tuple(args.window[i:i + 4]) for i in range(0, len(args.window), 4)] or list(WINDOWS)
+    src = PROGRAM.read_bytes()
+    report = []
+    for w in wins:
+        root = Path(args.out) / ("x%g-%g_y%g-%g" % w)
+        if not args.keep:
+            shutil.rmtree(root, ignore_errors=True)
+        (root / "nc").mkdir(parents=True, exist_ok=True)
+        band = window_program(src, w[0] - MARGIN_MM, w[1] + MARGIN_MM, w[2] - 1.0, w[3] + 1.0)
+        (root / "nc" / "band.nc").write_bytes(band)
+        written, wall = {"original": band}, {}
+        for mi in (1, 3):
+            t0 = time.perf_counter()
+            r = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", str(workflow(root, mi)),
+                                "--workers", "1", "-q"], cwd=root, capture_output=True, text=True)
+            wall[mi] = round(time.perf_counter() - t0, 1)
+            if r.returncode != 0:
+                raise SystemExit(r.stdout + r.stderr)
+            written[f"{mi} round{'s' if mi > 1 else ''}"] = (root / "out" / "nc" / "band.nc").read_bytes()
+        run = json.loads((root / "out" / "run.json").read_text())
+        rounds = run.get("correct_rounds", {}).get("band", [])
+        t0 = time.perf_counter()
+        res = vm_errors(w, written, yaml.safe_load((root / "wf1.yaml").read_text()))
+        res.update({"window": w, "pipeline_wall_s": wall, "vm_wall_s": round(time.perf_counter() - t0, 1),
+                    "rounds": [{k: r[k] for k in ("round", "n_errors", "rms_dev_um", "max_change_um")} for r in rounds]})
+        base = res["original"]["rms_um"]
+        print(f"window x {w[0]:g}–{w[1]:g}, y {w[2]:g}–{w[3]:g}: {res['points']} probe points "
+              f"(median q {res['q_p50_deg']:.0f}°), pipeline wall s {wall}, VM {res['vm_wall_s']} s")
+        for r in res["rounds"]:
+            print(f"  round {r['round']}: {r['n_errors']} predicted passes, predicted deviation RMS "
+                  f"{r['rms_dev_um']} um, max change {r['max_change_um']:.3f} um")
+        for name in written:
+            v = res[name]
+            print(f"  virtual machine, {name:>12}: error RMS {v['rms_um']:.3f} um ({100 * v['rms_um'] / base:.1f} % of before), "
+                  f"P95 {v['p95_abs_um']:.2f} um, max {v['max_abs_um']:.2f} um")
+        report.append(res)
+    Path(args.out, "summary.json").write_text(json.dumps(report, indent=1, default=str))
+
+
+if __name__ == "__main__":
+    os.chdir(ROOT)
+    main()
