@@ -52,7 +52,7 @@ import pyarrow as pa
 from stages import InputError
 
 NAME = "correct"
-VERSION = "3"
+VERSION = "4"
 INPUTS = ("blocks", "passes", "errors")
 OUTPUTS = ("corrected",)
 # only the clip limit changes the table; tol_um and max_iter steer the engine's rounds and the LN /
@@ -273,6 +273,11 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
         prev_n = np.full((nb, 3), np.nan)
         last = end
     total_um = (end - orig) * 1000.0 + move
+    if previous is not None and previous.num_rows:
+        # a vertex no pass of this round predicts (a render lost its pass on the corrected path)
+        # keeps the last round's move instead of snapping back to the original program
+        stale = np.linalg.norm(vnormal, axis=1) <= 1e-12
+        total_um[stale] = (last[stale] - orig[stale]) * 1000.0
     size = np.linalg.norm(total_um, axis=1)
     clipped = size > max_move * (1 + 1e-12)
     total_um[clipped] *= (max_move / size[clipped])[:, None]

@@ -872,3 +872,26 @@ def test_closed_loop_cylinder_benchmark_on_the_gap_virtual_machine(tmp_path):
           f"{['%.2f' % r for r in rms[1:]]}, written program {final:.2f} um = {100 * final / rms[0]:.1f} % of before")
     assert rms[0] > 5.0
     assert final <= 0.2 * rms[0]
+
+
+def test_vertex_without_a_prediction_in_a_later_round_keeps_its_move():
+    """Round 2 predicts only the first half of the passes (the render lost the rest on the corrected
+    path): the vertices of the second half keep round 1's moves instead of snapping back."""
+    data, blocks, passes = _load(SAMPLES[1])
+    passes = passes.sort_by("pass_id")
+    n = passes.num_rows
+    normals = np.tile([0.6, 0.0, 0.8], (n, 1))
+    r1 = correct_once(blocks, passes, _errors(passes, np.full(n, 5.0), normals), {"correct": {}})
+    half = passes.column("pass_id").to_numpy()[: n // 2]
+    e2 = _errors(passes, np.full(n, 7.0), normals)
+    e2 = e2.filter(pa.compute.is_in(e2.column("pass_id"), value_set=pa.array(half, e2.column("pass_id").type)))
+    r2 = correct_once(blocks, passes, e2, {"correct": {}}, previous=r1)
+    m1, m2 = r1.column("move_um").to_numpy(), r2.column("move_um").to_numpy()
+    bn = r2.column("block_no").to_numpy()
+    last_first = passes.column("block_end").to_numpy()[n // 2 - 1]
+    first_second = passes.column("block_no").to_numpy()[n // 2 + 1]
+    late = bn > first_second + 1                      # vertices only passes of the second half touch
+    early = (bn < last_first - 1) & (m1 > 0)
+    assert late.sum() > 100 and early.sum() > 100
+    np.testing.assert_allclose(m2[late], m1[late], rtol=1e-9)       # kept (5 µm along n)
+    assert np.allclose(m2[early], 7.0, rtol=0.02)                   # re-predicted (7 µm)

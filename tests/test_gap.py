@@ -255,12 +255,10 @@ def test_small_blind_check_names_effects_and_none(rigid, sample):
     assert s["none_correct"] == 1.0
     assert s["median_shrink"] >= 0.7
     assert s["param_error"]["median"] <= 0.2
-    # the larger effect of each pair is named first; whether the smaller one is found as well (it
-    # can sit at the model floor: the virtual machine's cusps between rows, which the prediction
-    # does not model) and the order of size are measured by the full blind check (README)
+    # both effects of each pair are named; their order of size is measured by the full blind check
+    # (README), not asserted on two cases
     pairs = [c for c in s["cases_detail"] if len(c["truth"]) == 2]
-    assert len(pairs) == 2 and all(c["found"][:1] == c["true_order"][:1] for c in pairs)
-    assert sum(set(c["truth"]) <= set(c["found"]) for c in pairs) >= 1
+    assert len(pairs) == 2 and all(set(c["truth"]) <= set(c["found"]) for c in pairs)
 
 
 class _LinearVM:
