@@ -28,9 +28,12 @@ column says which render gave the row: ``below``, ``normal`` or ``none`` (no sur
 pass).
 
 Engagement (claim 5): in 3-axis machining the material left after T1 and W is a height field:
-the depth buffer of the ordered scan just before p - f, read as a snapshot around p. Points of the envelope on a grid of axial
-levels and rotation angles are engaged where they lie below it. Table ``engagement``; decode a
-row with :func:`unpack_engagement`.
+the depth buffer of the ordered scan just before p - f, read as a snapshot around p. Points of the
+envelope on a grid of axial levels and rotation angles are engaged where they lie below it. On a
+steep wall that height field cannot hold the layer a finishing pass removes (tens of µm wide seen
+from below, less than a pixel), so for the passes whose generating point came from the normal view
+the engagement is read in that direction too (:func:`_engagement_along_normal`). Table
+``engagement``; decode a row with :func:`unpack_engagement`.
 """
 from __future__ import annotations
 
@@ -47,7 +50,7 @@ from stages.cut_filter import (PASSES_PER_DRAW, coarse_tolerance, fine_tolerance
 from stages.render import Scene, Snapshot, View
 
 NAME = "generating"
-VERSION = "4"
+VERSION = "5"
 INPUTS = ("passes", "stock", "cut_filter", "angle_prune")
 OUTPUTS = ("generating", "engagement")
 PARAMS = ("tool", "render")
@@ -120,9 +123,11 @@ def _segments_around(pg, cutting, s_p, f, win_lo, win_hi, bounds, gap):
     return piece(-np.inf, e1 - g), piece(e1 - g, e1), piece(e2 + g, np.inf)
 
 
-def _layer_scene(views, pg, cutting, s_p, f, bounds, wp, mesh, m_tips, m_feed, coarse, gap):
+def _layer_scene(views, pg, cutting, s_p, f, bounds, wp, mesh, m_tips, m_feed, coarse, gap,
+                 material_only=False):
     """Scene of the layers (W, T1 far, T2 far, M, T1 near) for ``views``: layer k of view i is
-    window k*n+i.
+    window k*n+i. With ``material_only`` only W, T1 far and T1 near (the material before p - f)
+    are drawn; windows of the other layers stay empty.
 
     Sweep ends within one tool radius of the window's prediction point use the fine mesh: only
     their copies can cross M near the surface it leaves (bands take the finer of their two
@@ -147,8 +152,10 @@ def _layer_scene(views, pg, cutting, s_p, f, bounds, wp, mesh, m_tips, m_feed, c
     # all views of a batch share the view direction only when seen from below; oblique views
     # are grouped one per scene part (culling depends on the direction)
     per_view = not all(np.allclose(v.view_dir, d) for v in views)
-    for layer, (w, a, b, ident) in ((1, (w1, a1, b1, ID_T1)), (2, (w2, a2, b2, ID_T2)),
-                                    (4, (w4, a4, b4, ID_T1))):
+    drawn = ((1, (w1, a1, b1, ID_T1)), (4, (w4, a4, b4, ID_T1)))
+    if not material_only:
+        drawn += ((2, (w2, a2, b2, ID_T2)),)
+    for layer, (w, a, b, ident) in drawn:
         if per_view:
             for i, v in enumerate(views):
                 s = w == i
@@ -159,7 +166,7 @@ def _layer_scene(views, pg, cutting, s_p, f, bounds, wp, mesh, m_tips, m_feed, c
             parts.append(geo.segment_scene(mesh, a, b, w + layer * n, np.full(len(w), ident), d,
                                            window_bounds=wb, coarse_mesh=coarse,
                                            fine_ends=fine(w, a, b)))
-    for i, v in enumerate(views):
+    for i, v in enumerate(views if not material_only else ()):
         tris, q, phi, _ = geo.envelope_copies(mesh, m_tips[i:i + 1], feed_deg=m_feed[i:i + 1],
                                               view_dir=v.view_dir)
         parts.append(_scene(tris, 3 * n + i, ID_M, phi, q))
@@ -267,8 +274,9 @@ def generating(pg, shape, wp, renderer, px_per_mm, predict_idx, pred_tips, flute
     dirs = pg.p1[predict_idx] - pg.p0[predict_idx]
     u = dirs / np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-12)
     half = R + margin
+    tops = np.zeros(m)                            # highest material above each tip, from below
     final, tile_of = _scan_program(pg, shape, wp, renderer, px_per_mm, mesh, predict_idx, pred_tips,
-                                   f, u, zlo, zhi, half, eng, dz, n_phi, tol, fd)
+                                   f, u, zlo, zhi, half, eng, dz, n_phi, tol, fd, tops)
     path_lo, path_hi = pg.s0, pg.s0 + pg.length
     redo = []                                     # (slot, estimated q, phi)
     from stages.render import make_scene
@@ -285,6 +293,9 @@ def generating(pg, shape, wp, renderer, px_per_mm, predict_idx, pred_tips, flute
                         s_p[k], f[k], gap[k], u[k], fd[k], path_lo, path_hi)
     _view_correction(gen, redo, pg, shape, wp, renderer, px_per_mm, cutting, bounds, mesh, coarse,
                      pred_tips, s_p, f, fd, gap, u)
+    steep = [k for k, _, _ in redo if gen["view"][k] == "normal"]
+    _engagement_along_normal(eng, steep, gen, pg, shape, wp, renderer, px_per_mm, cutting, bounds, mesh,
+                             pred_tips, s_p, f, fd, gap, tops, dz, n_phi, tol)
     return gen, eng
 
 
@@ -346,7 +357,7 @@ def _strip_estimate(shape, E, dz, n_phi, u, feed_deg, width=0.1):
 
 
 def _scan_program(pg, shape, wp, renderer, px_per_mm, mesh, predict_idx, tips, f, u, zlo, zhi, half,
-                  eng, dz, n_phi, tol, fd):
+                  eng, dz, n_phi, tol, fd, tops):
     """One ordered scan of the program per tile: the final surface (which pass leaves which
     pixel) and, at each prediction point, a snapshot of the material left before it (stock,
     every earlier pass, and the own pass up to p - f): the claim-5 cutting region's top.
@@ -403,6 +414,7 @@ def _scan_program(pg, shape, wp, renderer, px_per_mm, mesh, predict_idx, tips, f
             ctr = np.asarray(view.center, float) + cx * right + cy * up
             sv = View(tuple(ctr), view.view_dir, view.up, rect.cols / px_per_mm, rect.rows / px_per_mm,
                       px_per_mm, view.near_mm, view.far_mm)
+            tops[k] = np.max(depth) - tips[k][2] if depth.size else 0.0
             eng[k] = (_engagement(shape, sv, depth, tips[k], fd[k], dz, n_phi, tol), dz,
                       (np.cos(np.radians(fd[k])), np.sin(np.radians(fd[k]))))
 
@@ -481,26 +493,83 @@ def bilinear(img, cols, rows):
             + ty * ((1 - tx) * img[j1, i0] + tx * img[j1, i1]))
 
 
+def _envelope_grid(shape, tip, feed, dz, n_phi, top):
+    """Envelope points (n_z, n_phi, 3) at heights (k+.5)dz up to ``top`` above the tip (at most
+    the stick-out) and angles (j+.5)360/n_phi from the feed direction ``feed`` (deg)."""
+    n_z = int(np.clip(np.ceil(min(top, shape.stickout_mm) / dz), 1, None))
+    z = (np.arange(n_z) + 0.5) * dz
+    phi = (np.arange(n_phi) + 0.5) * 360.0 / n_phi
+    r = shape.profile_radius(z)
+    th = np.radians(phi + feed)
+    return np.stack(np.broadcast_arrays(tip[0] + r[:, None] * np.cos(th)[None],
+                                        tip[1] + r[:, None] * np.sin(th)[None],
+                                        tip[2] + z[:, None]), axis=-1)
+
+
+def _trim(E):
+    """``E`` without the levels above its highest engaged one (at least one level)."""
+    lev = np.nonzero(E.any(1))[0]
+    return E[:int(lev[-1]) + 1 if len(lev) else 1]
+
+
 def _engagement(shape, view, h, tip, feed, dz, n_phi, tol):
     """E[k, j]: envelope point at height (k+.5)dz, angle (j+.5)360/n_phi inside the material.
 
     ``h`` is the top of the material left before the cut (absolute z per pixel of ``view``, a
     from-below window; the view's near plane where there is none).
     """
-    top = np.max(h) - tip[2] if h.size else 0.0
-    n_z = int(np.clip(np.ceil(min(top, shape.stickout_mm) / dz), 1, None))
-    z = (np.arange(n_z) + 0.5) * dz
-    phi = (np.arange(n_phi) + 0.5) * 360.0 / n_phi
-    r = shape.profile_radius(z)
-    th = np.radians(phi + feed)
-    P = np.stack(np.broadcast_arrays(tip[0] + r[:, None] * np.cos(th)[None],
-                                     tip[1] + r[:, None] * np.sin(th)[None],
-                                     tip[2] + z[:, None]), axis=-1)
+    P = _envelope_grid(shape, tip, feed, dz, n_phi, np.max(h) - tip[2] if h.size else 0.0)
     cols, rows, _ = view.project(P)
-    E = P[..., 2] < bilinear(h, cols, rows) - tol
-    lev = np.nonzero(E.any(1))[0]
-    n_keep = int(lev[-1]) + 1 if len(lev) else 1
-    return E[:n_keep]
+    return _trim(P[..., 2] < bilinear(h, cols, rows) - tol)
+
+
+def _engagement_along_normal(eng, ks, gen, pg, shape, wp, renderer, px_per_mm, cutting, bounds, mesh,
+                             tips, s_p, f, fd, gap, tops, dz, n_phi, tol):
+    """Claim 5 seen along the surface normal (claim 6) for the passes ``ks`` found in that view.
+
+    On a steep wall the material a finishing pass removes is a layer tens of µm thick measured
+    horizontally: from below it is one pixel wide, and the height field smears it over that
+    pixel, so most of the side engagement is lost or invented. Along the normal that layer is a
+    depth. Looking from inside the material along the normal, the material before p - f ends,
+    on each ray, where the ray leaves the stock (W) or enters a sweep up to p - f (T1 far and
+    near), whichever is nearer; an envelope point is engaged when it lies before that depth.
+    The window covers every envelope point up to the stock top that lies within the view's
+    depth range around the surface; a ray that never leaves the stock within it (above the
+    stock, or beyond the far plane) holds no material.
+    """
+    R = shape.radius_mm
+    near, far = -0.5 * R, 0.5 * R
+    for b0 in range(0, len(ks), PASSES_PER_BATCH):
+        kb = np.asarray(ks[b0:b0 + PASSES_PER_BATCH])
+        views, grids = [], []
+        for k in kb:
+            nrm = np.array([gen["nx"][k], gen["ny"][k], gen["nz"][k]])
+            c = np.array([gen["gen_x_mm"][k], gen["gen_y_mm"][k], gen["gen_z_mm"][k]])
+            P = _envelope_grid(shape, tips[k], fd[k], dz, n_phi, tops[k])
+            probe = View(tuple(c), tuple(nrm), (0.0, 0.0, 1.0), 1.0, 1.0, px_per_mm, near, far)
+            right, up, d = probe.basis()
+            rel = P - c
+            x, y, depth = rel @ right, rel @ up, rel @ d
+            sel = (depth > near) & (depth < far)
+            if not sel.any():
+                sel = np.ones_like(depth, bool)
+            pad = 2.0 / px_per_mm
+            x0, x1, y0, y1 = x[sel].min() - pad, x[sel].max() + pad, y[sel].min() - pad, y[sel].max() + pad
+            ctr = c + 0.5 * (x0 + x1) * right + 0.5 * (y0 + y1) * up
+            views.append(View(tuple(ctr), tuple(nrm), tuple(up), x1 - x0, y1 - y0, px_per_mm, near, far))
+            grids.append(P)
+        n = len(views)
+        scene = _layer_scene(views, pg, cutting, s_p[kb], f[kb], bounds, wp, mesh, tips[kb], fd[kb],
+                             None, gap[kb], material_only=True)
+        imgs = renderer.render(views * N_LAYERS, scene)
+        for i, k in enumerate(kb):
+            W, T1, T1n = imgs[i], imgs[n + i], imgs[4 * n + i]
+            end = np.where(W.id >= 0, np.minimum(np.minimum(W.depth, T1.depth), T1n.depth), near)
+            cols, rows, depth = views[i].project(grids[i])
+            hh, ww = end.shape
+            inside = (cols >= 0) & (cols <= ww) & (rows >= 0) & (rows <= hh)
+            E = inside & (depth < bilinear(end, cols, rows) - tol)
+            eng[k] = (_trim(E), dz, eng[k][2])
 
 
 def run(inputs: dict, params: dict) -> dict:

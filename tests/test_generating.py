@@ -150,3 +150,49 @@ def test_engagement_of_a_slot_matches_closed_form():
     lim_in = np.degrees(np.arccos(-(f / 2 - tol * R / r[0]) / r[0]))
     signed = (phi + 180.0) % 360.0 - 180.0
     assert E[0, np.abs(signed) < lim_in - 2].all() and not E[0, np.abs(signed) > lim + 2].any()
+
+
+def test_engagement_on_a_vertical_wall_matches_closed_form():
+    """Side milling a vertical wall with a radial depth of one pixel (claims 5 and 6).
+
+    The ball-nose tool runs along +y with its axis at x = a_e - R against the stock x > 0 (top at
+    z = 0, tip at z = -H). On the cylindrical side a point at angle θ (from +x) is in the material
+    before p - f when it lies in the stock (R cos θ > R - a_e) and outside the side's sweep up
+    to p - f (plan distance to the axis segment ending at y = -f greater than R). Seen from below
+    this layer is one pixel wide; the normal view must recover it.
+    """
+    R, a_e, H, f = 5.0, 0.05, 8.0, 0.1
+    tool = {"type": "ball", "diameter_mm": 2 * R, "flutes": 2, "stickout_mm": 30.0}
+    xc = a_e - R
+    passes = pa.table({
+        "program_id": ["wall"], "pass_id": pa.array([0], pa.int32()),
+        "block_no": pa.array([0], pa.int32()), "line_no": pa.array([1], pa.int32()),
+        "motion": pa.array([1], pa.int8()),
+        "x0_mm": [xc], "y0_mm": [-20.0], "z0_mm": [-H], "x1_mm": [xc], "y1_mm": [20.0], "z1_mm": [-H],
+        "feed_mm_min": [f * 2 * 1000.0], "spindle_rpm": [1000.0], "tool": pa.array([1], pa.int32()),
+        "t_start_s": [0.0], "t_end_s": [1.0]})
+    stock = {"box": [0, -30, -30, 30, 30, 0]}
+    params = {"tool": tool, "render": {"backend": "auto", "px_per_mm": 20}}
+    cf = pa.table({"pass_id": pa.array([0], pa.int32()), "is_cutting": [True],
+                   "pred_x_mm": [xc], "pred_y_mm": [0.0], "pred_z_mm": [-H]})
+    ap = pa.table({"pass_id": pa.array([0], pa.int32()), "predict": [True]})
+    out = generating.run({"passes": passes, "stock": stock, "cut_filter": cf, "angle_prune": ap}, params)
+    g = out["generating"].to_pylist()[0]
+    assert g["view"] == "normal" and abs(g["contact_deg"] - 90.0) < 3.0
+    E, z, phi = unpack_engagement(out["engagement"].to_pylist()[0])
+    th = np.radians(phi + 90.0)                                  # feed +y: θ = φ + 90°
+    x, y = R * np.cos(th), R * np.sin(th)
+    d_axis = np.where(y > -f, np.hypot(x, y + f), np.abs(x))     # to the axis segment y <= -f
+
+    def closed_form(margin):
+        return (x > R - a_e + margin) & (d_axis > R + margin)
+    tol = generating.fine_tolerance(20)                          # the in-material margin
+    outer, inner = closed_form(0.0).sum(), closed_form(tol).sum()
+    side = (z > R + 0.1) & (z < H - 0.1)                           # the cylindrical side below the top
+    assert side.sum() > 50 and inner > 3
+    n_eng = E[side].sum(1)
+    print(f"\nside levels: engaged cells per level {np.median(n_eng)} (closed form {inner} to {outer})")
+    # within the closed form's bounds, ±1 angle bin at the ends
+    assert np.all((n_eng >= inner - 1) & (n_eng <= outer + 1))
+    assert not E[side][:, ~closed_form(-0.02)].any()              # nothing away from the layer
+    assert not E[z >= H + 0.05].any()
