@@ -27,9 +27,14 @@ near own path in layers of the same window and the depth test completed in numpy
 column says which render gave the row: ``below``, ``normal`` or ``none`` (no surface left by the
 pass).
 
-Engagement (claim 5): in 3-axis machining the material left after T1 and W is a height field:
-the depth buffer of the ordered scan just before p - f, read as a snapshot around p. Points of the
-envelope on a grid of axial levels and rotation angles are engaged where they lie below it. On a
+Engagement (claim 5): the envelope points, on a grid of axial levels and rotation angles, that lie
+in the material left by the stock and every earlier pass. In 3-axis machining that material is a
+height field: the depth buffer of the ordered scan just before the pass, read as a snapshot around
+p. The own pass is not drawn: a straight move only removes, at p, material behind the tool (a
+convex body translated along v never covers the boundary points whose outward normal u has
+u·v > 0), and the chip h = fz·(v·u) of the force model already selects the front. Drawing the
+own path up to p - f instead would leave, in front, only the layer one tooth removes, which on a
+wall the tool climbs is fz·sin 2° ≈ 4 µm: under the mesh tolerance, so the side would be lost. On a
 steep wall that height field cannot hold the layer a finishing pass removes (tens of µm wide seen
 from below, less than a pixel), so for the passes whose generating point came from the normal view
 the engagement is read in that direction too (:func:`_engagement_along_normal`). Table
@@ -50,7 +55,7 @@ from stages.cut_filter import (PASSES_PER_DRAW, coarse_tolerance, fine_tolerance
 from stages.render import Scene, Snapshot, View
 
 NAME = "generating"
-VERSION = "5"
+VERSION = "6"
 INPUTS = ("passes", "stock", "cut_filter", "angle_prune")
 OUTPUTS = ("generating", "engagement")
 PARAMS = ("tool", "render")
@@ -295,7 +300,7 @@ def generating(pg, shape, wp, renderer, px_per_mm, predict_idx, pred_tips, flute
                      pred_tips, s_p, f, fd, gap, u)
     steep = [k for k, _, _ in redo if gen["view"][k] == "normal"]
     _engagement_along_normal(eng, steep, gen, pg, shape, wp, renderer, px_per_mm, cutting, bounds, mesh,
-                             pred_tips, s_p, f, fd, gap, tops, dz, n_phi, tol)
+                             pred_tips, pg.s0[predict_idx], fd, tops, dz, n_phi, tol)
     return gen, eng
 
 
@@ -359,8 +364,8 @@ def _strip_estimate(shape, E, dz, n_phi, u, feed_deg, width=0.1):
 def _scan_program(pg, shape, wp, renderer, px_per_mm, mesh, predict_idx, tips, f, u, zlo, zhi, half,
                   eng, dz, n_phi, tol, fd, tops):
     """One ordered scan of the program per tile: the final surface (which pass leaves which
-    pixel) and, at each prediction point, a snapshot of the material left before it (stock,
-    every earlier pass, and the own pass up to p - f): the claim-5 cutting region's top.
+    pixel) and, at each prediction point, a snapshot of the material left before its pass (stock
+    and every earlier pass): the claim-5 cutting region's top.
 
     Each snapshot becomes the prediction's engagement map (``eng[k]``) as soon as it is taken.
     Returns (final images per tile, tile index per prediction).
@@ -396,10 +401,7 @@ def _scan_program(pg, shape, wp, renderer, px_per_mm, mesh, predict_idx, tips, f
                     j = inside[a:min(upto, a + PASSES_PER_DRAW)]
                     yield geo.ordered_sweep_scene(mesh, pg.p0[j], pg.p1[j], j)
                 done = max(done, upto)
-                back = tips[k] - f[k] * u[k]                   # the own pass up to p - f
-                if np.dot(back - pg.p0[i], u[k]) > 0:
-                    yield geo.ordered_sweep_scene(mesh, pg.p0[i][None], back[None], [i])
-                yield rect
+                yield rect                                     # the material before the pass
             for a in range(done, len(inside), PASSES_PER_DRAW):
                 j = inside[a:a + PASSES_PER_DRAW]
                 yield geo.ordered_sweep_scene(mesh, pg.p0[j], pg.p1[j], j)
@@ -524,7 +526,7 @@ def _engagement(shape, view, h, tip, feed, dz, n_phi, tol):
 
 
 def _engagement_along_normal(eng, ks, gen, pg, shape, wp, renderer, px_per_mm, cutting, bounds, mesh,
-                             tips, s_p, f, fd, gap, tops, dz, n_phi, tol):
+                             tips, s_start, fd, tops, dz, n_phi, tol):
     """Claim 5 seen along the surface normal (claim 6) for the passes ``ks`` found in that view.
 
     On a steep wall the material a finishing pass removes is a layer tens of µm thick measured
@@ -559,8 +561,9 @@ def _engagement_along_normal(eng, ks, gen, pg, shape, wp, renderer, px_per_mm, c
             views.append(View(tuple(ctr), tuple(nrm), tuple(up), x1 - x0, y1 - y0, px_per_mm, near, far))
             grids.append(P)
         n = len(views)
-        scene = _layer_scene(views, pg, cutting, s_p[kb], f[kb], bounds, wp, mesh, tips[kb], fd[kb],
-                             None, gap[kb], material_only=True)
+        zero = np.zeros(len(kb))                      # T1 = everything before the pass starts
+        scene = _layer_scene(views, pg, cutting, s_start[kb], zero, bounds, wp, mesh, tips[kb], fd[kb],
+                             None, zero, material_only=True)
         imgs = renderer.render(views * N_LAYERS, scene)
         for i, k in enumerate(kb):
             W, T1, T1n = imgs[i], imgs[n + i], imgs[4 * n + i]
