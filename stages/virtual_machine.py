@@ -187,28 +187,63 @@ def stock_height_fn(stock, cell_mm: float = 0.05):
 
 # ----------------------------------------------------------------------------------- machine
 def machine_modes(frf: Optional[dict], axis: str) -> list[tuple[float, float, float]]:
-    """Modes (fn_hz, zeta, k_n_per_um) of one axis; a measured table is reduced to its peaks."""
+    """Modes (fn_hz, zeta, k_n_per_um) of one axis; a measured table is fitted (:func:`fit_modes`)."""
     if not frf:
         raise InputError("machine.frf: the virtual machine needs the machine's compliance (modes or table)")
     if frf.get(axis):
         return [(float(m["fn_hz"]), float(m["zeta"]), float(m["k_n_per_um"])) for m in frf[axis]]
     from stages import read_numeric_csv
     tab = read_numeric_csv(frf["table"], ["freq_hz", f"{axis}{axis}_re", f"{axis}{axis}_im"], "FRF table")
-    f, im = tab[:, 0], -tab[:, 2]
-    # peak picking on −Im G: a mode has −Im = 1/(2ζk) at fn; ζ from the half-power width
-    pk = np.flatnonzero((im[1:-1] > im[:-2]) & (im[1:-1] >= im[2:]) & (im[1:-1] > 0.1 * im.max())) + 1
-    modes = []
+    modes = fit_modes(tab[:, 0], tab[:, 1] + 1j * tab[:, 2])
+    if not modes:
+        raise InputError(f"{frf['table']}: no resonance peak in {axis}{axis} (−Im of the compliance)")
+    return modes
+
+
+def modal_frf(f_hz, modes) -> np.ndarray:
+    """Compliance (µm/N) of a sum of modes: G = Σ 1/(k(1 − r² + 2iζr)), r = f/fn."""
+    f = np.asarray(f_hz, float)
+    return sum(1.0 / (k * (1 - (f / fn) ** 2 + 2j * z * f / fn)) for fn, z, k in modes)
+
+
+def fit_modes(f_hz, G, prominence: float = 0.05) -> list[tuple[float, float, float]]:
+    """Modes of a measured compliance FRF (standard modal identification).
+
+    Peaks of −Im G that stand out of the measurement noise (prominence at least ``prominence`` of
+    the largest) start the modes: fn at the peak, ζ from the half-power width, k from the peak
+    height (−Im G = 1/(2ζk) at fn). All modes are then fitted jointly to the complex FRF by least
+    squares. Every local maximum of a noisy peak is not a mode: counting each as one multiplied the
+    compliance of the sample table by 5 (static) to 15 (at 2.4 kHz).
+    """
+    from scipy.optimize import least_squares
+    from scipy.signal import find_peaks
+    f = np.asarray(f_hz, float)
+    G = np.asarray(G, complex)
+    im = -G.imag
+    if not np.any(im > 0):
+        return []
+    pk, _ = find_peaks(im, prominence=prominence * im.max())
+    x0 = []
     for p in pk:
         half = im[p] / 2
-        lo = p
+        lo, hi = p, p
         while lo > 0 and im[lo] > half:
             lo -= 1
-        hi = p
         while hi < len(im) - 1 and im[hi] > half:
             hi += 1
-        zeta = max((f[hi] - f[lo]) / (2 * f[p]), 1e-3)
-        modes.append((float(f[p]), float(zeta), float(1.0 / (2 * zeta * im[p]))))
-    return modes
+        zeta = float(np.clip((f[hi] - f[lo]) / (2 * f[p]), 1e-3, 0.5))
+        x0 += [f[p], np.log(zeta), np.log(1.0 / (2 * zeta * im[p]))]
+    if not x0:
+        return []
+
+    def modes_of(x):
+        return [(x[i], np.exp(x[i + 1]), np.exp(x[i + 2])) for i in range(0, len(x), 3)]
+
+    def resid(x):
+        d = modal_frf(f, modes_of(x)) - G
+        return np.concatenate([d.real, d.imag])
+    sol = least_squares(resid, np.array(x0, float), x_scale="jac")
+    return [(float(a), float(b), float(c)) for a, b, c in modes_of(sol.x)]
 
 
 def simulate_deflection(force: np.ndarray, rpm: np.ndarray, modes) -> np.ndarray:

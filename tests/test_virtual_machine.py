@@ -64,3 +64,23 @@ def test_climbing_ball_cuts_only_with_the_horizontal_feed():
     fx, fy = climb.forces()
     assert np.hypot(fx.mean(), fy.mean()) == pytest.approx(want, rel=0.15)
     assert fc.mean() < 0.5 * fl.mean()
+
+
+def test_modes_fitted_from_the_sample_frf_table_are_the_generators():
+    """The sample FRF table is a noisy modal sum (data_samples/README.md: x 850 Hz ζ 0.03 k 2.0 N/µm
+    + 2300 Hz ζ 0.05 k 6.0; y 910 Hz ζ 0.035 k 2.3 + 2450 Hz ζ 0.045 k 6.5; noise 0.002 µm/N +
+    0.5 %). The virtual machine must find those two modes per axis, not one per noisy local
+    maximum (which made it 5× too compliant statically and 15× at 2.4 kHz)."""
+    from pathlib import Path
+
+    from stages.virtual_machine import machine_modes, modal_frf
+    table = str(Path(__file__).resolve().parents[1] / "data_samples/machine/frf_xy.csv")
+    truth = {"x": [(850.0, 0.03, 2.0), (2300.0, 0.05, 6.0)], "y": [(910.0, 0.035, 2.3), (2450.0, 0.045, 6.5)]}
+    for axis, modes in truth.items():
+        got = sorted(machine_modes({"table": table}, axis))
+        assert len(got) == len(modes)
+        for (fn, z, k), (fn_t, z_t, k_t) in zip(got, modes):
+            assert fn == pytest.approx(fn_t, rel=0.005)
+            assert z == pytest.approx(z_t, rel=0.03) and k == pytest.approx(k_t, rel=0.03)
+        f = np.linspace(0.0, 5000.0, 501)
+        assert np.allclose(modal_frf(f, got), modal_frf(f, modes), atol=0.03 * np.abs(modal_frf(f, modes)).max())
