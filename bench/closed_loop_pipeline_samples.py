@@ -10,11 +10,11 @@ walls and the boss, where the error is):
    sample workflow's tool, material, machine FRF table, stock and prune) and writes the corrected
    program after ``correct.max_iter`` rounds (1 and 3);
 2. the original and the corrected programs are machined on ``stages/virtual_machine.py`` (discrete
-   flutes, time-domain dynamics of the modes it picks from the same FRF table, its own engagement on
-   the semi-finished stock; no prediction code) and probed inside the window on its own plan
+   flutes, time-domain dynamics of the modes it fits to the same FRF table, the tool's measured
+   profile, its own engagement on the semi-finished stock; no prediction code) and probed inside the window on its own plan
    (``grid_plan``, 0.1 mm along the passes' contact lines);
-3. the error is the probed surface minus the original program machined on a rigid machine (cusps and
-   feed marks, which no path correction removes, are not counted).
+3. the error is the probed surface minus the original program machined with the nominal tool on a
+   rigid machine (cusps and feed marks, which no path correction removes, are not counted).
 
     python3 bench/closed_loop_pipeline_samples.py [--out DIR] [X0 X1 Y0 Y1 ...]
 """
@@ -89,8 +89,11 @@ def vm_errors(window, programs: dict, wf: dict) -> dict:
     from stages.split import split_blocks
     from stages.virtual_machine import VirtualMachine, grid_plan
     x0, x1, y0, y1 = window
-    tool = {k: v for k, v in wf["tool"].items() if k != "profile"}    # the VM's tool is nominal too
-    split = {"split": wf["split"], "machine": wf["machine"], "tool": tool}
+    # the real machine cuts with the real tool (its measured profile); the reference is the nominal
+    # tool on a rigid machine: the error is deflection plus tool shape, both of which the
+    # prediction corrects
+    nominal = {k: v for k, v in wf["tool"].items() if k != "profile"}
+    split = {"split": wf["split"], "machine": wf["machine"], "tool": nominal}
 
     def near(passes):
         g = lambda c: passes.column(c).to_numpy()  # noqa: E731
@@ -103,7 +106,8 @@ def vm_errors(window, programs: dict, wf: dict) -> dict:
         frf = ({a: [{"fn_hz": 900.0, "zeta": 0.03, "k_n_per_um": 1e9}] for a in "xy"} if rigid
                else {"table": wf["machine"]["frf"]["table"]})
         b, _ = parse_program(text, "vm.nc", "band")
-        return VirtualMachine(near(split_blocks(b, split)), tool, wf["material"], {"frf": frf}, wf["stock"])
+        return VirtualMachine(near(split_blocks(b, split)), nominal if rigid else wf["tool"], wf["material"],
+                              {"frf": frf}, wf["stock"])
 
     ideal_vm = machine(programs["original"], True)
     pts, nrm = grid_plan(ideal_vm, 0.1)

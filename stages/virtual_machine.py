@@ -20,7 +20,8 @@ Model (all vectorised over passes / points)
   the periodic deflection of the pass (no FFT, no frequency-domain compliance).
 - Surface: every plan point p (normal n) is cut by discrete tooth passages: for each flute and the
   spindle revolutions around the time the nominal centre passes p, the flute's sphere (radius R
-  plus the effects' profile changes, centre = path position at that instant + deflection at the
+  less the tool's measured shape error ``tool.profile`` at the contact angle, and the effects'
+  profile changes, centre = path position at that instant + deflection at the
   spindle angle of the passage + the effects' machine offsets + flute offset ρ along the contact
   direction) removes material; the surface left along n is the lowest entry of the ray p + s·n
   into any of these spheres. ``err_um`` = s (positive = material left, DESIGN §5) + probe noise.
@@ -314,6 +315,13 @@ class VirtualMachine:
         # the flutes run up the side to the stick-out (the same tool the prediction describes)
         self.stickout = float(tool.get("stickout_mm") or 4 * self.R)
         self.base_runout = float(tool.get("runout_um") or 0.0)
+        # the real tool's shape (claim 2 table: contact_deg, error_um; + = tool smaller there)
+        self.profile = None
+        if tool.get("profile"):
+            from stages import read_numeric_csv
+            tab = read_numeric_csv(tool["profile"], ["contact_deg", "error_um"], "tool.profile")
+            o = np.argsort(tab[:, 0])
+            self.profile = (tab[o, 0], tab[o, 1])
         self.coeffs = {k: float(material.get(k) or 0.0) for k in ("ktc", "krc", "kac", "kte", "kre", "kae")}
         frf = (machine or {}).get("frf")
         self.modes = {"x": machine_modes(frf, "x"), "y": machine_modes(frf, "y")}
@@ -587,8 +595,8 @@ class VirtualMachine:
         return p.c0[i] + f[:, None] * (p.c1[i] - p.c0[i])
 
     def _radius_loss(self, effects, q_deg, row, s_along, t):
-        """Radius smaller than nominal (µm) at contact angle q: contour error and wear."""
-        out = np.zeros(len(q_deg))
+        """Radius smaller than nominal (µm) at contact angle q: measured shape, contour error and wear."""
+        out = np.zeros(len(q_deg)) if self.profile is None else np.interp(q_deg, *self.profile)
         if "tool_contour" in effects:
             e = effects["tool_contour"]
             out += e["a_um"] * np.exp(-0.5 * ((q_deg - e["q0_deg"]) / e["width_deg"]) ** 2)

@@ -84,3 +84,23 @@ def test_modes_fitted_from_the_sample_frf_table_are_the_generators():
             assert z == pytest.approx(z_t, rel=0.03) and k == pytest.approx(k_t, rel=0.03)
         f = np.linspace(0.0, 5000.0, 501)
         assert np.allclose(modal_frf(f, got), modal_frf(f, modes), atol=0.03 * np.abs(modal_frf(f, modes)).max())
+
+
+def test_measured_tool_profile_leaves_its_error_along_the_normal(tmp_path):
+    """A tool whose profile table says it is smaller by w(q) leaves w(q) of material at contact angle
+    q (rigid machine): probe a 30° slope cut by a ball whose profile error is 2 + q/30 µm."""
+    q_tab = np.arange(0.0, 91.0, 1.0)
+    prof = tmp_path / "profile.csv"
+    np.savetxt(prof, np.c_[q_tab, 2.0 + q_tab / 30.0], delimiter=",", header="contact_deg,error_um", comments="")
+    s = np.radians(30.0)
+    # the ball centre runs along y over a 30° slope z = -x·tan 30° (normal n = (sin 30°, 0, cos 30°))
+    x_c = 0.0
+    z_tip = -(5.0 / np.cos(s)) + 5.0                      # the ball touches the plane through the origin
+    passes = one_pass((x_c, -10.0, z_tip), (x_c, 10.0, z_tip))
+    stock = {"box": [-30, -30, -20, 30, 30, 5]}
+    n = np.array([[np.sin(s), 0.0, np.cos(s)]])
+    contact = np.array([[x_c, 0.0, z_tip + 5.0]]) - 5.0 * n    # the ball's contact point with the plane
+    nominal = VirtualMachine(passes, tool(), MAT, RIGID, stock)
+    real = VirtualMachine(passes, {**tool(), "profile": str(prof)}, MAT, RIGID, stock)
+    e = real.probe(contact, n) - nominal.probe(contact, n)
+    assert e[0] == pytest.approx(2.0 + 30.0 / 30.0, abs=0.02)
