@@ -493,6 +493,8 @@ class VirtualMachine:
               noise_um: float = 0.0, rng: Optional[np.random.Generator] = None) -> np.ndarray:
         """Deviation (µm, + = material left) of the machined surface at each plan point along its normal."""
         effects = effects or {}
+        if len(pts) == 0:
+            return np.zeros(0)
         p = self.path
         R, Z = self.R, self.flutes
         n = normals / np.linalg.norm(normals, axis=1, keepdims=True)
