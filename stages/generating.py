@@ -131,8 +131,8 @@ def _segments_around(pg, cutting, s_p, f, win_lo, win_hi, bounds, gap):
 def _layer_scene(views, pg, cutting, s_p, f, bounds, wp, mesh, m_tips, m_feed, coarse, gap,
                  material_only=False):
     """Scene of the layers (W, T1 far, T2 far, M, T1 near) for ``views``: layer k of view i is
-    window k*n+i. With ``material_only`` only W, T1 far and T1 near (the material before p - f)
-    are drawn; windows of the other layers stay empty.
+    window k*n+i. With ``material_only`` only W, T1 far and T1 near (the material before path
+    position s_p - f) are drawn; windows of the other layers stay empty.
 
     Sweep ends within one tool radius of the window's prediction point use the fine mesh: only
     their copies can cross M near the surface it leaves (bands take the finer of their two
@@ -532,9 +532,10 @@ def _engagement_along_normal(eng, ks, gen, pg, shape, wp, renderer, px_per_mm, c
     On a steep wall the material a finishing pass removes is a layer tens of µm thick measured
     horizontally: from below it is one pixel wide, and the height field smears it over that
     pixel, so most of the side engagement is lost or invented. Along the normal that layer is a
-    depth. Looking from inside the material along the normal, the material before p - f ends,
-    on each ray, where the ray leaves the stock (W) or enters a sweep up to p - f (T1 far and
-    near), whichever is nearer; an envelope point is engaged when it lies before that depth.
+    depth. Looking from inside the material along the normal, the material before the pass ends,
+    on each ray, where the ray leaves the stock (W) or enters the sweep of an earlier pass (the
+    T1 layers, cut at the pass's start), whichever is nearer; an envelope point is engaged when
+    it lies before that depth.
     The window covers every envelope point up to the stock top that lies within the view's
     depth range around the surface; a ray that never leaves the stock within it (above the
     stock, or beyond the far plane) holds no material.
