@@ -627,12 +627,14 @@ class VirtualMachine:
         return off
 
 
-def grid_plan(vm: VirtualMachine, spacing_mm: float = 0.5, k: int = 12) -> tuple[np.ndarray, np.ndarray]:
+def grid_plan(vm: VirtualMachine, spacing_mm: float = 0.5, k: int = 48) -> tuple[np.ndarray, np.ndarray]:
     """Probe points along the cutting passes' contact lines when no plan is given.
 
     The surface normal is that of the ball-centre surface (the offset surface has the part's
-    normals): the smallest principal axis of the ``k`` nearest centre samples, turned up (3-axis
-    ball: the contact is on the lower half). Returns (points, normals).
+    normals): the smallest principal axis of the ``k`` nearest centre samples (0.1 mm apart along
+    the passes, so ``k`` must reach the neighbouring rows: with 12 the samples of one row are
+    collinear and the normal is any direction across it), turned up (3-axis ball: the contact is
+    on the lower half) and made normal to the pass. Returns (points, normals).
     """
     from scipy.spatial import cKDTree
     p = vm.path
@@ -651,7 +653,15 @@ def grid_plan(vm: VirtualMachine, spacing_mm: float = 0.5, k: int = 12) -> tuple
     _, vec = np.linalg.eigh(cov)
     n = vec[:, :, 0]
     n = np.where(n[:, 2:3] < 0, -n, n)
+    # a ball touches the surface in the plane normal to its motion
+    t = (p.c1 - p.c0)[owner] / np.maximum(ln[owner], 1e-12)[:, None]
+    n = n - np.einsum("ij,ij->i", n, t)[:, None] * t
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
     pts = c - vm.R * n
-    # keep points where the stock was cut (the surface exists)
+    # keep points where the stock was cut (the surface exists) and that no other pass cut deeper:
+    # at the edge of a raster the fitted normal tilts and puts the point on the flank of the last
+    # row, which its neighbour has cut away (100+ µm above the finished surface)
     keep = pts[:, 2] < vm.stock_h(pts[:, 0], pts[:, 1])
+    near = cKDTree(cloud).query_ball_point(pts, vm.R - 0.005, return_length=True)
+    keep &= near == 0
     return pts[keep], n[keep]

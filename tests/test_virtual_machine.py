@@ -104,3 +104,28 @@ def test_measured_tool_profile_leaves_its_error_along_the_normal(tmp_path):
     real = VirtualMachine(passes, {**tool(), "profile": str(prof)}, MAT, RIGID, stock)
     e = real.probe(contact, n) - nominal.probe(contact, n)
     assert e[0] == pytest.approx(2.0 + 30.0 / 30.0, abs=0.02)
+
+
+def test_grid_plan_points_lie_on_the_finished_surface():
+    """Plan points are where the machined surface is: no pass's ball reaches beyond any of them.
+
+    Rows 0.6 mm apart across a valley (z = 0.05·y²): at the edge rows the fitted normal of the
+    centre surface tilts; a point placed along it on the flank of the last row would lie where
+    the neighbour row cut deeper.
+    """
+    from stages.virtual_machine import grid_plan
+    ys = 0.6 * np.arange(-5, 6)
+    zs = 0.05 * ys ** 2 - 2.0
+    n = len(ys)
+    passes = pa.table({"program_id": ["t"] * n, "pass_id": pa.array(np.arange(n), pa.int32()),
+                       "motion": pa.array([1] * n, pa.int8()),
+                       "x0_mm": [-5.0] * n, "y0_mm": ys, "z0_mm": zs, "x1_mm": [5.0] * n, "y1_mm": ys, "z1_mm": zs,
+                       "feed_mm_min": [1000.0] * n, "spindle_rpm": [10000.0] * n,
+                       "t_start_s": 0.6 * np.arange(n), "t_end_s": 0.6 * np.arange(n) + 0.6})
+    vm = VirtualMachine(passes, tool(), MAT, RIGID, {"box": [-10, -10, -10, 10, 10, 0]})
+    pts, nrm = grid_plan(vm, 0.5)
+    assert len(pts) > 100
+    c = np.stack([np.zeros(n), ys, zs + 5.0], 1)                # ball centres (x along the rows)
+    d_yz = np.linalg.norm(pts[:, None, 1:] - c[None, :, 1:], axis=2)
+    inside_x = np.abs(pts[:, 0]) <= 5.0
+    assert np.all(d_yz[inside_x].min(axis=1) > 5.0 - 0.002)
