@@ -426,27 +426,25 @@ def random_case(rng, kind: str, ctx: dict) -> dict:
     sgn = lambda: rng.choice([-1.0, 1.0])
     if kind == "runout":
         # eccentricity within 45° of a flute (else with 2 flutes no flute stands out): e_eff ≥ e·cos 45°
-        return {"e_um": rng.uniform(4, 15), "phase_deg": rng.uniform(-45, 45) + 360.0 / _FLUTES["n"] * rng.integers(_FLUTES["n"])}
+        return {"e_um": rng.uniform(*_RANGES["runout"]), "phase_deg": rng.uniform(-45, 45) + 360.0 / _FLUTES["n"] * rng.integers(_FLUTES["n"])}
     if kind == "tool_contour":
-        return {"a_um": sgn() * rng.uniform(4, 12), "q0_deg": rng.uniform(0.2 * qmax, 0.8 * qmax),
+        return {"a_um": sgn() * rng.uniform(*_RANGES["tool_contour"]), "q0_deg": rng.uniform(0.2 * qmax, 0.8 * qmax),
                 "width_deg": rng.uniform(5, 15)}
     if kind == "tool_wear":
-        return {"rate_um_per_m": rng.uniform(5, 15) * 1000.0 / max(ctx["cut_len_mm"], 1e-6)}   # 5-15 µm at the end
+        return {"rate_um_per_m": rng.uniform(*_RANGES["tool_wear"]) * 1000.0 / max(ctx["cut_len_mm"], 1e-6)}
     if kind == "thermal_drift":
         a = rng.normal(size=3)
-        a = a / np.linalg.norm(a) * rng.uniform(8, 25)
+        a = a / np.linalg.norm(a) * rng.uniform(*_RANGES["thermal_drift"])
         return {"ax_um": a[0], "ay_um": a[1], "az_um": a[2], "tau_s": T * rng.uniform(0.1, 1.0)}
     if kind == "force_scale":
-        return {"scale": float(np.exp(rng.uniform(math.log(2.0), math.log(3.5)) * sgn()))}
+        return {"scale": float(np.exp(rng.uniform(*np.log(_RANGES["force_scale"])) * sgn()))}
     if kind == "servo_corner":
-        return {"a_um": sgn() * rng.uniform(10, 30), "lambda_mm": rng.uniform(0.3, 1.5)}
+        return {"a_um": sgn() * rng.uniform(*_RANGES["servo_corner"]), "lambda_mm": rng.uniform(0.3, 1.5)}
     if kind == "machine_geometry":
         v = rng.normal(size=6)
         g = dict(zip(("sx", "sy", "sz", "exy", "exz", "eyz"), map(float, v)))
-        tip = ctx["tips"]
-        disp = np.stack([g["sx"] * tip[:, 0] + g["exy"] * tip[:, 1] + g["exz"] * tip[:, 2],
-                         g["sy"] * tip[:, 1] + g["eyz"] * tip[:, 2], g["sz"] * tip[:, 2]], 1)
-        k = rng.uniform(8.0, 20.0) / max(float(np.linalg.norm(disp, axis=1).max()), 1e-9)  # 8-20 µm largest offset
+        disp = _geometry_offsets(g, ctx["tips"])
+        k = rng.uniform(*_RANGES["machine_geometry"]) / max(float(np.linalg.norm(disp, axis=1).max()), 1e-9)
         return {key: val * k for key, val in g.items()}
     raise ValueError(kind)
 
@@ -472,8 +470,7 @@ def param_error(kind: str, true: dict, fit: dict, geom=None) -> float:
         # the six coefficients are not all identifiable on a part a few mm tall (z terms ~ an offset);
         # the error of the tool-offset field they make, over the measured points, is
         tip, n = geom
-        field = lambda g: np.sum(n * np.stack([g["sx"] * tip[:, 0] + g["exy"] * tip[:, 1] + g["exz"] * tip[:, 2],  # noqa: E731
-                                               g["sy"] * tip[:, 1] + g["eyz"] * tip[:, 2], g["sz"] * tip[:, 2]], 1), 1)
+        field = lambda g: np.sum(n * _geometry_offsets(g, tip), 1)  # noqa: E731
         ft = field(true)
         return float(np.sqrt(np.mean((field(fit) - ft) ** 2)) / np.sqrt(np.mean(ft ** 2)))
     keys = list(true)
@@ -593,10 +590,10 @@ def blind_cases(vm, passes: pa.Table, errors: Optional[pa.Table], tool: dict, pt
     calibration = {"force_scale_s0": s0, "floor_um": floor, "reference_rms_um": float(np.sqrt(np.mean(F0["residual_um"] ** 2))),
                    "reference_noise_um": ref_sigma, "noise_est_um": sig0}
     for ci, kinds_i in enumerate(plan_cases):
-        truth = {k: random_case(rng, k, ctx) for k in kinds_i if k != "none"}
-        if len(truth) == 2:
-            # an order of size must exist: the second effect is rescaled to 45-75 % of the first's RMS
-            truth = _distinct_sizes(truth, vm, pts, nrm, float(rng.uniform(0.45, 0.75)), ctx)
+        if len(kinds_i) == 2:
+            truth = _draw_pair(rng, kinds_i, pool, vm, pts, nrm, ctx)
+        else:
+            truth = {k: random_case(rng, k, ctx) for k in kinds_i if k != "none"}
         sigma = float(rng.uniform(*noise))
         err = vm.probe(pts, nrm, truth, sigma, rng)
         F, rej = associate(_meas_table(ids, pts, nrm, err), passes, errors, tool, off_part_mm, deflection)
@@ -661,44 +658,88 @@ def _scaled(name: str, params: dict, k: float) -> dict:
     return out
 
 
-def _growth_limit(name: str, params: dict, ctx: Optional[dict]) -> float:
-    """How much an effect's amplitude may grow and stay within the range ``random_case`` draws from."""
+# drawn sizes of each effect (random_case): runout e µm, contour |a| µm, wear at the end µm, drift |a| µm,
+# force scale s (and 1/s), servo lag |a| µm, machine geometry's largest tool offset µm
+_RANGES = {"runout": (4.0, 15.0), "tool_contour": (4.0, 12.0), "tool_wear": (5.0, 15.0), "thermal_drift": (8.0, 25.0),
+           "force_scale": (2.0, 3.5), "servo_corner": (10.0, 30.0), "machine_geometry": (8.0, 20.0)}
+
+
+def _geometry_offsets(g: dict, tip: np.ndarray) -> np.ndarray:
+    """Tool offsets (µm) of the machine-geometry effect at the tool tips ``tip`` (mm)."""
+    return np.stack([g["sx"] * tip[:, 0] + g["exy"] * tip[:, 1] + g["exz"] * tip[:, 2],
+                     g["sy"] * tip[:, 1] + g["eyz"] * tip[:, 2], g["sz"] * tip[:, 2]], 1)
+
+
+def _amplitude_range(name: str, params: dict, ctx: Optional[dict]) -> tuple[float, float]:
+    """By how much an effect's amplitude may be scaled (``_scaled``) and stay within the range
+    ``random_case`` draws from: (smallest, largest) factor. Without the part's context only the
+    force scale's range is known; the others may then shrink freely but not grow."""
+    lo, hi = _RANGES[name]
     if name == "force_scale":
         s = params["scale"]
-        return (3.5 - 1.0) / (s - 1.0) if s > 1 else (1.0 - 1.0 / 3.5) / max(1.0 - s, 1e-12)
-    if ctx is None:
-        return 1.0
-    if name == "runout":
-        return 15.0 / max(params["e_um"], 1e-12)
-    if name == "tool_contour":
-        return 12.0 / max(abs(params["a_um"]), 1e-12)
-    if name == "tool_wear":
-        return 15.0 / max(params["rate_um_per_m"] * ctx["cut_len_mm"] * 1e-3, 1e-12)
-    if name == "thermal_drift":
-        return 25.0 / max(math.sqrt(params["ax_um"] ** 2 + params["ay_um"] ** 2 + params["az_um"] ** 2), 1e-12)
-    if name == "servo_corner":
-        return 30.0 / max(abs(params["a_um"]), 1e-12)
-    if name == "machine_geometry":
-        tip, g = ctx["tips"], params
-        disp = np.stack([g["sx"] * tip[:, 0] + g["exy"] * tip[:, 1] + g["exz"] * tip[:, 2],
-                         g["sy"] * tip[:, 1] + g["eyz"] * tip[:, 2], g["sz"] * tip[:, 2]], 1)
-        return 20.0 / max(float(np.linalg.norm(disp, axis=1).max()), 1e-12)   # µm/mm × mm = µm
-    return 1.0
+        amp, lo, hi = (s - 1.0, lo - 1.0, hi - 1.0) if s > 1 else (1.0 - s, 1.0 - 1.0 / lo, 1.0 - 1.0 / hi)
+    elif ctx is None:
+        return 0.0, 1.0
+    elif name == "runout":
+        amp = params["e_um"]
+    elif name in ("tool_contour", "servo_corner"):
+        amp = abs(params["a_um"])
+    elif name == "tool_wear":
+        amp = params["rate_um_per_m"] * ctx["cut_len_mm"] * 1e-3
+    elif name == "thermal_drift":
+        amp = math.sqrt(params["ax_um"] ** 2 + params["ay_um"] ** 2 + params["az_um"] ** 2)
+    elif name == "machine_geometry":
+        amp = float(np.linalg.norm(_geometry_offsets(params, ctx["tips"]), axis=1).max())   # µm/mm × mm
+    else:
+        return 0.0, 1.0
+    amp = max(amp, 1e-12)
+    return lo / amp, hi / amp
 
 
-def _distinct_sizes(truth: dict, vm, pts, nrm, ratio: float, ctx: Optional[dict] = None) -> dict:
-    base = vm.probe(pts, nrm, {}, 0.0)
-    size = {k: float(np.sqrt(np.mean((vm.probe(pts, nrm, {k: v}, 0.0) - base) ** 2))) for k, v in truth.items()}
+def _distinct_sizes(truth: dict, vm, pts, nrm, ratio: float, ctx: Optional[dict] = None,
+                    size: Optional[dict] = None) -> Optional[dict]:
+    """The pair rescaled so that the second effect's RMS on the points is ``ratio`` × the first's,
+    with both amplitudes kept inside the ranges ``random_case`` draws from (a second effect scaled
+    below its range would be a different, smaller effect than the single-effect cases test; one
+    scaled above it, a force scale below zero or a servo lag of 100+ µm): the second is scaled as
+    far as its range allows and the first by the rest. None when the first would then leave its
+    own range (the caller draws again). ``size``: each effect's RMS, when known (``_true_sizes``)."""
+    size = size or _true_sizes(truth, vm, pts, nrm)
     first, second = list(truth)
     if size[second] <= 0 or size[first] <= 0:
         return truth
     k = ratio * size[first] / size[second]
-    if k > 1.0:
-        # the second grows only up to the top of its drawn range (beyond it: a force scale below
-        # zero, a servo lag of 100+ µm); the first is made smaller for the rest
-        g = min(k, max(_growth_limit(second, truth[second], ctx), 1.0))
-        return {first: _scaled(first, truth[first], g / k), second: _scaled(second, truth[second], g)}
-    return {first: truth[first], second: _scaled(second, truth[second], k)}
+    lo2, hi2 = _amplitude_range(second, truth[second], ctx)
+    lo1, hi1 = _amplitude_range(first, truth[first], ctx)
+    g = min(max(k, min(lo2, 1.0)), max(hi2, 1.0))          # the second's share, within its range
+    f = g / k                                              # the first's, for the rest
+    if not min(lo1, 1.0) * (1 - 1e-9) <= f <= max(hi1, 1.0) * (1 + 1e-9):
+        return None                                        # not possible within the drawn ranges
+    return {first: _scaled(first, truth[first], f), second: _scaled(second, truth[second], g)}
+
+
+def _draw_pair(rng, kinds: list, pool: list, vm, pts, nrm, ctx: dict, tries: int = 20) -> dict:
+    """Parameters of a two-effect case whose second effect's RMS on the points is 45-75 % of the
+    first's, both within their drawn ranges (``_distinct_sizes``). The drawn kinds are tried in both
+    orders (a corner effect is never the larger: it is small in RMS), with fresh parameters; when
+    the part admits no such sizes for them (e.g. a force scale of at most 3.5 on a part with little
+    deflection against a tool wear of at least 5 µm), another pair of kinds is drawn."""
+    base = vm.probe(pts, nrm, {}, 0.0)
+    for _ in range(10):
+        a, b = kinds
+        for _ in range(tries):
+            truth = {k: random_case(rng, k, ctx) for k in (a, b)}
+            size = _true_sizes(truth, vm, pts, nrm, base)
+            ratio = float(rng.uniform(0.45, 0.75))
+            for first, second in ((a, b), (b, a)):
+                if first == "servo_corner":
+                    continue
+                pair = _distinct_sizes({first: truth[first], second: truth[second]}, vm, pts, nrm, ratio, ctx, size)
+                if pair is not None:
+                    return pair
+        a = str(rng.choice([k for k in pool if k != "servo_corner"]))
+        kinds = [a, str(rng.choice([k for k in pool if k != a]))]
+    raise RuntimeError("blind check: no pair of effects within the drawn ranges has distinct sizes on this part")
 
 
 def _meas_table(ids, pts, nrm, err) -> pa.Table:
@@ -707,9 +748,9 @@ def _meas_table(ids, pts, nrm, err) -> pa.Table:
                      "t_s": np.full(len(err), np.nan)})
 
 
-def _true_sizes(truth: dict, vm, pts, nrm) -> dict:
+def _true_sizes(truth: dict, vm, pts, nrm, base: Optional[np.ndarray] = None) -> dict:
     """RMS (µm) of each effect's own signature on the measured points (noise-free, alone)."""
-    base = vm.probe(pts, nrm, {}, 0.0)
+    base = vm.probe(pts, nrm, {}, 0.0) if base is None else base
     return {k: float(np.sqrt(np.mean((vm.probe(pts, nrm, {k: v}, 0.0) - base) ** 2))) for k, v in truth.items()}
 
 

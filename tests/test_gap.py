@@ -300,6 +300,28 @@ def test_pair_sizes_are_in_order_and_physical(truth):
             assert abs(v[amp]) <= abs(truth[k][amp]) + 1e-12
 
 
+def test_pair_second_effect_stays_within_its_drawn_range():
+    """With the part's context, a second effect is never scaled below the range the single-effect
+    cases draw from (runout ≥ 4 µm): the first grows instead, within its own range; when it cannot,
+    there is no such pair (None: the blind check draws again)."""
+    from pipeline.gap import _RANGES, _distinct_sizes
+    vm = _LinearVM()
+    pts = np.zeros((200, 3))
+    ctx = {"tips": pts, "cut_len_mm": 1000.0}
+    rms = lambda k, v: float(np.sqrt(np.mean(vm.probe(pts, pts, {k: v}) ** 2)))  # noqa: E731
+    truth = {"servo_corner": {"a_um": 10.0, "lambda_mm": 1.0}, "runout": {"e_um": 15.0, "phase_deg": 0.0}}
+    out = _distinct_sizes(truth, vm, pts, pts, 0.2, ctx)
+    # the plain rescale would make the runout 0.2·10·|servo|/|runout| ≈ 2 µm, below its 4 µm
+    assert 0.2 * 10.0 * rms("servo_corner", {"a_um": 1.0}) / rms("runout", {"e_um": 1.0}) < _RANGES["runout"][0]
+    assert out["runout"]["e_um"] == pytest.approx(_RANGES["runout"][0])
+    assert rms("runout", out["runout"]) == pytest.approx(0.2 * rms("servo_corner", out["servo_corner"]), rel=1e-9)
+    assert abs(out["servo_corner"]["a_um"]) <= _RANGES["servo_corner"][1]
+    # a force scale of 3 can grow only to 3.5 (amplitude × 1.25), too little for a 30 µm servo lag
+    # that may shrink only to 10 µm
+    assert _distinct_sizes({"force_scale": {"scale": 3.0}, "servo_corner": {"a_um": 30.0, "lambda_mm": 1.0}},
+                           vm, pts, pts, 0.5, ctx) is None
+
+
 # ------------------------------------------------------------------------------------ CLI
 def test_cli_simulate_writes_a_measurement_file_the_reader_accepts(tmp_path):
     from pipeline.cli import main
