@@ -7,7 +7,8 @@ After the stage loop has run the chain once (round 1: parse → … → errors �
     correct_blocks (original blocks + last corrected → blocks of the corrected program)
     → split → cut_filter → angle_prune → generating → forces → deflection → errors
     → correct (the move for the errors predicted on the corrected path, applied to the original
-      program: the fixed point P = P0 − e(P)·n, see stages.correct.run; ``iteration`` counts rounds)
+      program: the fixed point P = P0 − e(P)·n, see stages.correct.run; ``iteration`` counts rounds;
+      a pass this round does not predict keeps its round-1 error, ``first_errors``)
 
 until the largest change is below the tolerance or ``max_iter`` rounds have run. Each round's
 partitions are ordinary cache entries of the same stages, keyed by stage, version, params, the
@@ -95,6 +96,8 @@ def _source(run, stage, name: str, part, rkeys: dict, prev_correct: str):
             return "split", part.keys["split"], "passes"
         if name == "round_passes":
             return "split", rkeys["split"], "passes"
+        if name == "first_errors":
+            return "errors", part.keys["errors"], "errors"
         if name == "corrected":
             return "correct", prev_correct, "corrected"
     if name == "blocks":
@@ -139,7 +142,7 @@ def iterate_corrections(run, get_client, reports: list, failures: list, progress
         for stage in chain:
             rep = StageReport(f"{stage.NAME}@{rnd}")
             todo, specs = [], {}
-            names = stage.INPUTS + (("round_passes", "corrected") if stage.NAME == "correct" else ())
+            names = stage.INPUTS + (("round_passes", "corrected", "first_errors") if stage.NAME == "correct" else ())
             for part in active:
                 if part.failed:
                     continue

@@ -52,7 +52,7 @@ import pyarrow as pa
 from stages import InputError
 
 NAME = "correct"
-VERSION = "4"
+VERSION = "5"
 INPUTS = ("blocks", "passes", "errors")
 OUTPUTS = ("corrected",)
 # only the clip limit changes the table; tol_um and max_iter steer the engine's rounds and the LN /
@@ -579,6 +579,18 @@ def errors_on_passes(errors: pa.Table, passes_from: pa.Table, passes_to: pa.Tabl
                           pa.array(target[ok], out.schema.field("pass_id").type))
 
 
+def with_missing_from(errors: pa.Table, fallback: pa.Table | None) -> pa.Table:
+    """``errors`` plus the rows of ``fallback`` (same passes) for passes ``errors`` has no finite error for."""
+    if fallback is None or fallback.num_rows == 0:
+        return errors
+    have = _col(errors, "pass_id", np.int64)[np.isfinite(_col(errors, "err_um"))] if errors.num_rows else np.zeros(0, np.int64)
+    add = fallback.filter(pa.array(~np.isin(_col(fallback, "pass_id", np.int64), have)
+                                   & np.isfinite(_col(fallback, "err_um"))))
+    if add.num_rows == 0:
+        return errors
+    return pa.concat_tables([errors, add.select(errors.column_names).cast(errors.schema)])
+
+
 def run(inputs: dict, params: dict) -> dict[str, pa.Table]:
     """One correction round on the predicted errors (the engine iterates, ``pipeline/iterate.py``).
 
@@ -588,12 +600,17 @@ def run(inputs: dict, params: dict) -> dict[str, pa.Table]:
     relative to the path they were predicted for; the machined surface of path P is P + e(P)·n, so
     the command that leaves the original surface is the fixed point P = P0 − e(P)·n: each round
     applies the move for the newly predicted errors to the ORIGINAL program (``blocks`` and
-    ``passes`` stay the original ones) instead of adding it to the previous moves.
+    ``passes`` stay the original ones) instead of adding it to the previous moves. A pass the
+    round's render did not predict (a moved pass whose cut the neighbours now cover in the pixel
+    grid, a generating view that found nothing) keeps its round-1 error (``first_errors``, the
+    prediction on the original program): without it the vertex it shares with a predicted pass
+    followed that pass alone, and a pocket corner's 140 µm error came back uncorrected.
     (:func:`correct_iteratively` is the other case: its errors are measured against the original
     surface, residuals, and its moves accumulate.)
     """
     errors = inputs["errors"]
     if inputs.get("round_passes") is not None:
         errors = errors_on_passes(errors, inputs["round_passes"], inputs["passes"])
+        errors = with_missing_from(errors, inputs.get("first_errors"))
     return {"corrected": correct_once(inputs["blocks"], inputs["passes"], errors, params,
                                       previous=inputs.get("corrected"))}

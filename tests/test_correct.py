@@ -895,3 +895,36 @@ def test_vertex_without_a_prediction_in_a_later_round_keeps_its_move():
     assert late.sum() > 100 and early.sum() > 100
     np.testing.assert_allclose(m2[late], m1[late], rtol=1e-9)       # kept (5 µm along n)
     assert np.allclose(m2[early], 7.0, rtol=0.02)                   # re-predicted (7 µm)
+
+
+def test_pass_missing_in_a_later_round_keeps_its_round_one_error():
+    """A later round's render predicts every pass but one (a corner pass whose cut it lost on the
+    corrected path): the vertices of that pass combine its round-1 error with the neighbours' new
+    ones, as if it had been predicted again with the same error (para 0084 on both passes)."""
+    from stages.correct import run
+    data, blocks, passes = _load(SAMPLES[1])
+    passes = passes.sort_by("pass_id")
+    n = passes.num_rows
+    normals = np.tile([0.6, 0.0, 0.8], (n, 1))
+    first = _errors(passes, np.full(n, 5.0), normals)
+    r1 = run({"blocks": blocks, "passes": passes, "errors": first}, {"correct": {}})["corrected"]
+    err2 = np.full(n, 7.0)
+    # a G1 line that is a pass of its own, between two such lines
+    bno, bend = passes.column("block_no").to_numpy(), passes.column("block_end").to_numpy()
+    motion = dict(zip(blocks.column("block_no").to_pylist(), blocks.column("motion").to_pylist()))
+    single = (bno == bend) & np.array([motion[b] == 1 for b in bno])
+    single &= np.concatenate([[False], np.diff(bno) == 1]) & np.concatenate([np.diff(bno) == 1, [False]])
+    gone = int(np.flatnonzero(single[1:-1] & single[:-2] & single[2:])[len(single) // 4] + 1)
+    full2 = _errors(passes, np.where(np.arange(n) == gone, 5.0, err2), normals)   # what the fallback should give
+    part2 = _errors(passes, err2, normals).filter(pa.array(np.arange(n) != gone))
+    ins = {"blocks": blocks, "passes": passes, "corrected": r1, "round_passes": passes}
+    got = run({**ins, "errors": part2, "first_errors": first}, {"correct": {}})["corrected"]
+    want = run({**ins, "errors": full2}, {"correct": {}})["corrected"]
+    without = run({**ins, "errors": part2}, {"correct": {}})["corrected"]
+    for c in ("x_new_mm", "y_new_mm", "z_new_mm", "move_um"):
+        np.testing.assert_allclose(got.column(c).to_numpy(), want.column(c).to_numpy(), rtol=0, atol=1e-12)
+    # without the fallback the pass's vertices follow its neighbours alone (7 µm instead of 6)
+    at = np.isin(got.column("block_no").to_numpy(), [bno[gone] - 1, bno[gone]])
+    assert at.sum() == 2
+    np.testing.assert_allclose(got.column("move_um").to_numpy()[at], 6.0, rtol=1e-9)
+    np.testing.assert_allclose(without.column("move_um").to_numpy()[at], 7.0, rtol=1e-9)
