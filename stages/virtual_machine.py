@@ -529,12 +529,15 @@ class VirtualMachine:
                 i0 = np.floor(fi).astype(np.int64) % N_ROT
                 w = fi - np.floor(fi)
                 i1 = (i0 + 1) % N_ROT
-                ddx = (1 - w) * dx_rev[row, i0] + w * dx_rev[row, i1]
-                ddy = (1 - w) * dy_rev[row, i0] + w * dy_rev[row, i1]
                 for m in PASSAGES:
                     t = t_star + dt0 + m * T
                     s_along = u * ln[row] + (t - t_star) * v
-                    c = self._centre_at(p.s0[row] + s_along)
+                    c, at = self._centre_at(p.s0[row] + s_along)
+                    # the deflection of the pass the tool is on at that passage: a passage a
+                    # revolution beyond the end of a short pass is on its neighbour, and after a
+                    # pocket corner's 120 µm the next pass's own small deflection there over-cut
+                    ddx = (1 - w) * dx_rev[at, i0] + w * dx_rev[at, i1]
+                    ddy = (1 - w) * dy_rev[at, i0] + w * dy_rev[at, i1]
                     off = np.stack([ddx, ddy, np.zeros_like(ddx)], 1) * 1e-3
                     off += rho[j] * np.stack([np.cos(alpha), np.sin(alpha), np.zeros_like(alpha)], 1)
                     radius = np.full(len(pts), R)
@@ -589,12 +592,12 @@ class VirtualMachine:
 
     def _centre_at(self, s_glob):
         """Nominal ball centre at path length ``s_glob`` along the cutting moves (continues into the
-        neighbouring passes instead of extrapolating a pass beyond its end)."""
+        neighbouring passes instead of extrapolating a pass beyond its end) and the pass (row) it is on."""
         p = self.path
         i = np.clip(np.searchsorted(p.s0, s_glob, side="right") - 1, 0, len(p.s0) - 1)
         f = np.clip((s_glob - p.s0[i]) / p.length[i], 0.0, 1.0)
         f = np.where((i == len(p.s0) - 1) | (i == 0), (s_glob - p.s0[i]) / p.length[i], f)
-        return p.c0[i] + f[:, None] * (p.c1[i] - p.c0[i])
+        return p.c0[i] + f[:, None] * (p.c1[i] - p.c0[i]), i
 
     def _radius_loss(self, effects, q_deg, row, s_along, t):
         """Radius smaller than nominal (µm) at contact angle q: measured shape, contour error and wear."""
@@ -616,7 +619,9 @@ class VirtualMachine:
             off += np.stack([e["ax_um"] * g, e["ay_um"] * g, e["az_um"] * g], 1) * 1e-3
         if "servo_corner" in effects:
             e = effects["servo_corner"]
-            dist, ang, b = corner_features(self.path, row, np.clip(frac, 0, 1))
+            # distance along the path from the passage's own position (beyond the pass's end it is
+            # on the neighbour: clipping it to the end put every such passage at the corner itself)
+            dist, ang, b = corner_features(self.path, row, frac)
             mag = e["a_um"] * np.sin(np.radians(ang) / 2) / math.sin(math.pi / 4) * np.exp(-dist / e["lambda_mm"])
             off += b * mag[:, None] * 1e-3
         if "machine_geometry" in effects:

@@ -227,7 +227,13 @@ def test_force_scale_scales_the_deflection_part(sample):
     passes = passes.slice(0, 120)                  # the first rows: two machines built in seconds
     soft = VirtualMachine(passes, TOOL, MAT, SOFT, str(SAMPLE / "stock.stl"))
     stiff = VirtualMachine(passes, TOOL, MAT, RIGID, str(SAMPLE / "stock.stl"))
-    mine = nearest_pass(soft.path, pts + R * nrm)[2] < 0.05
+    row, u, dist = nearest_pass(soft.path, pts + R * nrm)
+    # the deflection scales exactly where the tooth passages that cut a point (±1 revolution) are
+    # all on its own pass; beyond a pass's end they carry the neighbour's deflection, and which of
+    # them cuts deepest may change with the scale
+    p = soft.path
+    rev = p.feed[row] / p.rpm[row] * 1.5
+    mine = (dist < 0.05) & (u * p.length[row] >= rev) & ((1 - u) * p.length[row] >= rev)
     pts, nrm = pts[mine], nrm[mine]
     assert len(pts) >= 50
     dfl = soft.probe(pts, nrm) - stiff.probe(pts, nrm)

@@ -129,3 +129,37 @@ def test_grid_plan_points_lie_on_the_finished_surface():
     d_yz = np.linalg.norm(pts[:, None, 1:] - c[None, :, 1:], axis=2)
     inside_x = np.abs(pts[:, 0]) <= 5.0
     assert np.all(d_yz[inside_x].min(axis=1) > 5.0 - 0.002)
+
+
+def test_tooth_passages_beyond_a_short_pass_carry_the_neighbours_deflection():
+    """Three collinear passes, the middle one 0.05 mm long (a CAM chord at a pocket corner). A point
+    on the side of its path is cut by tooth passages up to a revolution (0.2 mm) before and after
+    it, i.e. on the neighbours. The first pass deflects the tool 30 µm into the side, the others
+    not at all: the side there is over-cut by the first pass's 30 µm less the ball's sag over the
+    distance to that passage (closed form below), not left at the short pass's own 0."""
+    feed, rpm = 2000.0, 10000.0                      # 0.2 mm per revolution, 0.1 mm per tooth
+    xs = (0.0, 5.0, 5.05, 10.0)
+    t = np.cumsum([0.0] + [(b - a) / feed * 60.0 for a, b in zip(xs[:-1], xs[1:])])
+    passes = pa.table({"program_id": ["t"] * 3, "pass_id": pa.array([0, 1, 2], pa.int32()),
+                       "motion": pa.array([1, 1, 1], pa.int8()),
+                       "x0_mm": list(xs[:-1]), "y0_mm": [0.0] * 3, "z0_mm": [-1.0] * 3,
+                       "x1_mm": list(xs[1:]), "y1_mm": [0.0] * 3, "z1_mm": [-1.0] * 3,
+                       "feed_mm_min": [feed] * 3, "spindle_rpm": [rpm] * 3,
+                       "t_start_s": list(t[:-1]), "t_end_s": list(t[1:])})
+    vm = VirtualMachine(passes, tool(), MAT, RIGID, {"box": [-30, -30, -20, 30, 30, 0]})
+    R = 5.0
+    pt = np.array([[5.025, -R, 4.0]])                # ball centre at z = 4, the side at y = −R
+    nrm = np.array([[0.0, 1.0, 0.0]])                # out of the material (y < −R), towards the tool
+    dx = np.zeros((3, 192))
+    dy = np.zeros((3, 192))
+    dy[0] = -30.0                                    # pass 0 pushed 30 µm towards the side (−y)
+    vm._defl_cache[(0.0, 0.0)] = (dx, dy)
+    got = vm.probe(pt, nrm)[0]
+    # the deepest passage on pass 0: the point's tooth passages are 0.1 mm apart (2 flutes), the
+    # last ones on pass 0 at 0.025 + k·0.1 mm before x = 5.025 (k = 0: x 5.0 is pass 0's end);
+    # a passage Δ away along x reaches the side at y = −R + (R − √(R² − Δ²)) shifted by −30 µm
+    deltas = 0.025 + 0.1 * np.arange(0, 3)
+    sag = (R - np.sqrt(R * R - deltas ** 2)) * 1e3
+    want = min(np.min(sag - 30.0), 0.0)             # or the short pass's own passages: ≥ 0
+    assert got == pytest.approx(want, abs=1.0)
+    assert got < -25.0                               # before: the short pass's 0 was applied there
