@@ -34,7 +34,14 @@ Catalogue (signature on r, µm; features as in ``associate``):
 - ``tool_wear``: rate·L (µm per m of cut, ≥ 0)
 - ``thermal_drift``: n·A·(1 − exp(−t/τ)) (A µm per axis, τ s)
 - ``force_scale``: (s − 1)·predicted deflection error (s ratio)
-- ``servo_corner``: a·(b·n)·sin(θ/2)/sin 45°·exp(−d/λ) (a µm, λ mm; b inside bisector, θ corner angle)
+- ``servo_corner``: the tool lags by a·sin(θ/2)/sin 45°·exp(−d/λ) towards the inside of the turn (a µm,
+  λ mm; b inside bisector, θ corner angle, d path distance to the corner). Chosen with the smooth
+  form a·(b·n)·sin(θ/2)/sin 45°·exp(−d/λ) (the lag at the point's own path position); its parameters
+  are then fitted with what the surface shows (``servo_signature``): the envelope of the tooth
+  passages (one per feed per tooth, each with its own lag) around each point near a corner,
+  averaged over the unknown spindle phase. The passage whose lag cuts deeper wins, so the smooth
+  form read a too small for a lag that leaves material and too large for one that over-cuts
+  (−30 µm, λ 0.3 mm: −34.5 µm, λ 0.29 mm on the sample plan, noise-free).
 - ``machine_geometry``: n·(sx·x + exy·y + exz·z, sy·y + eyz·z, sz·z) at the tool tip (µm/mm)
 """
 from __future__ import annotations
@@ -89,7 +96,7 @@ def associate(meas: pa.Table, passes: pa.Table, errors: Optional[pa.Table], tool
         r, u, d = nearest_pass(p, cstar)
         better = d < best
         best[better], which[better], row[better], uu[better] = d[better], k, r[better], u[better]
-    F = {k: np.zeros(n) for k in ("u", "t_s", "cut_len_mm", "tip_x_mm", "tip_y_mm", "tip_z_mm", "corner_dist_mm",
+    F = {k: np.zeros(n) for k in ("u", "s_mm", "rpm", "t_s", "cut_len_mm", "tip_x_mm", "tip_y_mm", "tip_z_mm", "corner_dist_mm",
                                   "corner_deg", "bx", "by", "bz", "feed_mm_min", "feed_deg", "dist_mm", "normal_dev_deg",
                                   "predicted_um", "pred_deflection_um", "pred_shape_um")}
     prog = np.empty(n, dtype=object)
@@ -110,6 +117,8 @@ def associate(meas: pa.Table, passes: pa.Table, errors: Optional[pa.Table], tool
         F["u"][m] = u
         F["t_s"][m] = p.t0[r] + u * (p.t1[r] - p.t0[r])
         F["cut_len_mm"][m] = p.L0[r] + u * p.length[r]
+        F["s_mm"][m] = p.s0[r] + u * p.length[r]
+        F["rpm"][m] = p.rpm[r]
         F["tip_x_mm"][m], F["tip_y_mm"][m], F["tip_z_mm"][m] = c[:, 0], c[:, 1], c[:, 2] - R
         cd, ca, b = corner_features(p, r, u)
         F["corner_dist_mm"][m], F["corner_deg"][m] = cd, ca
@@ -146,6 +155,9 @@ def associate(meas: pa.Table, passes: pa.Table, errors: Optional[pa.Table], tool
                          f"(first: point {rejected[0][0]}: {rejected[0][1]}); wrong file, frame or units?")
     order = np.lexsort((F["u"][keep], F["pass_id"][keep], F["program_id"][keep].astype(str)))
     F = {k: v[keep][order] for k, v in F.items()}
+    # the paths themselves, for the servo lag's tooth-passage envelope (``servo_signature``)
+    F["_geometry"] = {"paths": {p.program_id: p for p in paths}, "R": R, "flutes": int(tool.get("flutes") or 2),
+                      "cache": []}
     return F, rejected
 
 
@@ -237,6 +249,164 @@ def runout_response(F, e_um: float) -> np.ndarray:
     return ((1 - w) * resp[:, i] + w * resp[:, i + 1]) / e
 
 
+# ------------------------------------------------------------------ servo lag: tooth-passage envelope
+ENV_PHASES = 8      # spindle phases averaged: the diagnosis does not know the phase a point was cut at
+ENV_TOL_UM = 1e-3   # the envelope is computed where it may differ from the smooth form by more than this
+
+
+def servo_smooth(F, lam_mm: float) -> np.ndarray:
+    """(b·n)·sin(θ/2)/sin 45°·exp(−d/λ): the lag of the tool at the point's own path position, per µm of a."""
+    return ((F["bx"] * F["nx"] + F["by"] * F["ny"] + F["bz"] * F["nz"])
+            * np.sin(np.radians(F["corner_deg"]) / 2) / math.sin(math.pi / 4)
+            * np.exp(-np.where(np.isfinite(F["corner_dist_mm"]), F["corner_dist_mm"], 1e9) / lam_mm))
+
+
+def _env_geometry(F, a_max_um: float, lam_max_mm: float) -> dict:
+    """The tooth passages around every point near a corner, for lags up to ``a_max_um`` and decay
+    lengths up to ``lam_max_mm`` (cached on ``F``).
+
+    The surface at a point is left by discrete tooth passages, one per feed per tooth fz = feed /
+    (rpm·flutes) along the path, each a ball (radius R) centred on the path at its own position plus
+    the servo lag there. Which passage cuts deepest at a point depends on the spindle phase, which
+    the diagnosis does not know: ``ENV_PHASES`` phases, evenly spread over one fz, are averaged. A
+    passage farther than W along the path cannot cut deeper than the nearest one (its ball lies
+    δ²/2R higher at the point, more than any lag difference 2·a_max plus the nearest passage's own
+    feed mark; its lag along the path moves it by at most a_max). Beyond ``d_near`` from a corner
+    the lag changes so slowly along the path that the deepest passage gains less than
+    ``ENV_TOL_UM`` over the smooth form (≈ R·(ℓ/λ)²/2 for a lag ℓ): the smooth form is used there.
+
+    Per near point, phase and passage (offset δ): the ray entry into the nominal ball, A0 − √(R² − P0)
+    (A0 = (c − p)·n, P0 = |(c − p)⊥n|²), and the lag's unit vector bm = b·sin(θ/2)/sin 45° as
+    B = bm·n, Q = (c − p)⊥·bm⊥, S = |bm⊥|², with the passage's corner distance: a lag g = a·e^(−d/λ)
+    moves the entry to A0 + g·B − √(R² − P0 − 2gQ − g²S).
+    """
+    geo = F["_geometry"]
+    for g in geo["cache"]:
+        if g["a_max"] >= a_max_um and g["lam_max"] >= lam_max_mm:
+            return g
+    from stages.gap_geometry import corner_features, path_point
+    R, Z = float(geo["R"]), int(geo["flutes"])
+    amax = abs(a_max_um) * 1e-3 * math.sqrt(2)                   # mm; sin(θ/2)/sin 45° ≤ √2
+    fz = F["feed_mm_min"] / np.maximum(F["rpm"] * Z, 1e-9)
+    W = np.sqrt(2 * R * 2 * amax + (fz / 2) ** 2) + amax
+    lag_tol = lam_max_mm * math.sqrt(2 * ENV_TOL_UM * 1e-3 / R)
+    d_near = W + lam_max_mm * math.log(max(amax / lag_tol, 1.0))
+    cd = F["corner_dist_mm"]
+    idx = np.flatnonzero(np.isfinite(cd) & (cd < d_near) & (fz > 0))
+    out = {"a_max": float(abs(a_max_um)), "lam_max": float(lam_max_mm), "idx": idx}
+    geo["cache"].append(out)
+    if not idx.size:
+        return out
+    K = int(min(np.ceil((W[idx] / fz[idx]).max()), 400))
+    off = ((np.arange(ENV_PHASES) + 0.5) / ENV_PHASES - 0.5)[:, None] + np.arange(-K, K + 1)[None, :]
+    delta = off[None] * fz[idx, None, None]                      # (m, phases, passages) mm
+    shape = delta.shape
+    arr = {k: np.full(shape, np.inf if k == "dist" else 0.0) for k in ("A0", "P0", "B", "Q", "S", "dist")}
+    valid = np.abs(delta) <= (W[idx] + fz[idx])[:, None, None]
+    pts = np.stack([F["x_mm"], F["y_mm"], F["z_mm"]], 1)[idx]
+    nrm = np.stack([F["nx"], F["ny"], F["nz"]], 1)[idx]
+    prog = F["program_id"][idx]
+    for pid, path in geo["paths"].items():
+        m = np.flatnonzero(prog == pid)
+        if not m.size or len(path.pass_id) == 0:
+            continue
+        s = (F["s_mm"][idx[m]][:, None, None] + delta[m]).ravel()
+        c, row = path_point(path, s)
+        dist, ang, b = corner_features(path, row, (s - path.s0[row]) / path.length[row])
+        sh = (len(m),) + shape[1:]
+        cp = c.reshape(sh + (3,)) - pts[m][:, None, None, :]
+        n = nrm[m][:, None, None, :]
+        bm = (b * (np.sin(np.radians(ang) / 2) / math.sin(math.pi / 4))[:, None]).reshape(sh + (3,))
+        A0 = np.sum(cp * n, -1)
+        B = np.sum(bm * n, -1)
+        arr["A0"][m], arr["B"][m] = A0, B
+        arr["P0"][m] = np.sum(cp * cp, -1) - A0 * A0
+        arr["Q"][m] = np.sum(cp * bm, -1) - A0 * B
+        arr["S"][m] = np.sum(bm * bm, -1) - B * B
+        arr["dist"][m] = dist.reshape(sh)
+    inner = R * R - arr["P0"]
+    e0 = np.where(valid & (inner >= 0), arr["A0"] - np.sqrt(np.maximum(inner, 0.0)), np.inf)
+    out.update(arr, valid=valid, e0=e0.min(axis=2), R=R)
+    return out
+
+
+def servo_signature(F, a_um: float, lam_mm: float) -> np.ndarray:
+    """The surface a servo lag (a µm, decay λ mm) leaves (µm along n): the envelope of the tooth
+    passages around each point near a corner, averaged over the spindle phase (``_env_geometry``),
+    and a·``servo_smooth`` where the two agree within ``ENV_TOL_UM``. Without the path geometry
+    (features built elsewhere) the smooth form."""
+    sig = a_um * servo_smooth(F, lam_mm)
+    if "_geometry" not in F or a_um == 0:
+        return sig
+    g = _env_geometry(F, abs(a_um), lam_mm)
+    if not g["idx"].size:
+        return sig
+    R = g["R"]
+    gl = a_um * 1e-3 * np.exp(-g["dist"] / lam_mm)
+    inner = R * R - (g["P0"] + 2 * gl * g["Q"] + gl * gl * g["S"])
+    e = np.where(g["valid"] & (inner >= 0), g["A0"] + gl * g["B"] - np.sqrt(np.maximum(inner, 0.0)), np.inf)
+    d = e.min(axis=2) - g["e0"]
+    ok = np.isfinite(d)
+    env = np.where(ok, d, 0.0).sum(axis=1) / np.maximum(ok.sum(axis=1), 1) * 1e3
+    sig[g["idx"]] = np.where(ok.any(axis=1), env, sig[g["idx"]])
+    return sig
+
+
+def refine_servo(F, y, mask, chosen: list, beta: np.ndarray):
+    """The servo lag of ``chosen`` re-fitted with the tooth-passage envelope (``servo_signature``).
+
+    The effects are chosen with the smooth form; its fit (a_s, λ_s) starts a Nelder–Mead search of
+    (a, λ) within [a_s/2, 2·a_s] × [λ_s/2, 2·λ_s], the other effects' linear parameters solved at
+    each step. Returns (chosen with the servo entry's value (λ, a), betas in the same layout)."""
+    names = [e.name for e, _ in chosen]
+    if "servo_corner" not in names or "_geometry" not in F:
+        return chosen, beta
+    from scipy.optimize import minimize
+    i = names.index("servo_corner")
+    k0 = sum(e.n_lin for e, _ in chosen[:i])
+    e_s, th = chosen[i]
+    lam_s = float(th[0])
+    a_s = float(beta[k0])                       # µm of lag in both forms of the basis
+    if not np.isfinite(a_s) or abs(a_s) < 1e-6:
+        return chosen, beta
+    _env_geometry(F, 2 * abs(a_s), 2 * lam_s)
+    others = [(e, t) for j, (e, t) in enumerate(chosen) if j != i]
+    Xo = np.hstack([e.basis(F, t) for e, t in others])[mask] if others else None
+    ym = y[mask]
+
+    def solve(x):
+        a, lam = a_s * x[0], lam_s * math.exp(x[1])
+        r = ym - servo_signature(F, a, lam)[mask]
+        bo = np.linalg.lstsq(Xo, r, rcond=None)[0] if Xo is not None else np.zeros(0)
+        if Xo is not None:
+            r = r - Xo @ bo
+        return float(r @ r), bo
+
+    def cost(x):
+        if not (0.5 <= x[0] <= 2.0 and abs(x[1]) <= math.log(2.0)):
+            return np.inf
+        return solve(x)[0]
+
+    sol = minimize(cost, np.array([1.0, 0.0]), method="Nelder-Mead",
+                   options={"initial_simplex": [[1.0, 0.0], [1.1, 0.0], [1.0, 0.1]], "xatol": 1e-4, "fatol": 1e-9,
+                            "maxiter": 400})
+    x = sol.x if np.isfinite(sol.fun) else np.array([1.0, 0.0])
+    a, lam = a_s * float(x[0]), lam_s * math.exp(float(x[1]))
+    _, bo = solve(x)
+    out = list(chosen)
+    out[i] = (e_s, (lam, a))
+    b = np.empty(len(beta))
+    j, k = 0, 0
+    for jj, (e, _) in enumerate(chosen):
+        if jj == i:
+            b[k] = a
+        else:
+            b[k:k + e.n_lin] = bo[j:j + e.n_lin]
+            j += e.n_lin
+        k += e.n_lin
+    return out, b
+
+
 _BASIS = {
     "runout": lambda F, th: runout_response(F, th[0] if th else 1.0),
     "tool_contour": lambda F, th: np.exp(-0.5 * ((F["q_deg"] - th[0]) / th[1]) ** 2)[:, None],
@@ -244,9 +414,10 @@ _BASIS = {
     "thermal_drift": lambda F, th: (np.stack([F["nx"], F["ny"], F["nz"]], 1)
                                     * (1 - np.exp(-np.maximum(F["t_s"], 0) / th[0]))[:, None]),
     "force_scale": lambda F, th: F["pred_deflection_um"][:, None],
-    "servo_corner": lambda F, th: ((F["bx"] * F["nx"] + F["by"] * F["ny"] + F["bz"] * F["nz"])
-                                   * np.sin(np.radians(F["corner_deg"]) / 2) / math.sin(math.pi / 4)
-                                   * np.exp(-np.where(np.isfinite(F["corner_dist_mm"]), F["corner_dist_mm"], 1e9) / th[0]))[:, None],
+    # th = (λ,): the smooth form (effect selection); th = (λ, a): the tooth-passage envelope of a
+    # lag a, per µm of a (the fitted model: ``refine_servo``)
+    "servo_corner": lambda F, th: (servo_smooth(F, th[0]) if len(th) == 1
+                                   else servo_signature(F, th[1], th[0]) / th[1])[:, None],
     "machine_geometry": lambda F, th: np.stack([F["nx"] * F["tip_x_mm"], F["ny"] * F["tip_y_mm"], F["nz"] * F["tip_z_mm"],
                                                 F["nx"] * F["tip_y_mm"], F["nx"] * F["tip_z_mm"], F["ny"] * F["tip_z_mm"]], 1),
 }
@@ -440,8 +611,9 @@ def fold_fits(F, y, fold, chosen: list) -> list:
             out.append((test, []))
             continue
         ch, th, beta = fit_joint(F, y, ~test, chosen[:-1], chosen[-1][0])
+        ch, beta = refine_servo(F, y, ~test, ch + [(chosen[-1][0], th)], beta)
         items, k = [], 0
-        for e, t in ch + [(chosen[-1][0], th)]:
+        for e, t in ch:
             items.append((e, t, beta[k:k + e.n_lin]))
             k += e.n_lin
         out.append((test, items))
@@ -562,6 +734,7 @@ def diagnose(F: dict, noise_um: Optional[float] = None, floor_um: float = 0.0) -
     if chosen:
         X = np.hstack([e.basis(F, t) for e, t in chosen])
         beta, *_ = np.linalg.lstsq(X, y, rcond=None)
+        chosen, beta = refine_servo(F, y, np.ones(n, bool), chosen, beta)
         k = 0
         for e, t in chosen:
             b = beta[k:k + e.n_lin]

@@ -111,3 +111,19 @@ def corner_features(path: Path3, rows: np.ndarray, u: np.ndarray):
     return np.minimum(dlo, dhi), path.corner_deg[c], path.corner_b[c]
 
 
+
+
+def path_point(path: Path3, s: np.ndarray):
+    """Nominal ball centre at path length ``s`` along the cutting moves and the pass (row) it lies on.
+
+    Within the moves the centre follows them (across a pass end onto the next cutting move);
+    before the first and after the last move the line of that move is extended.
+    """
+    s = np.asarray(s, float)
+    i = np.clip(np.searchsorted(path.s0, s, side="right") - 1, 0, len(path.s0) - 1)
+    f = (s - path.s0[i]) / path.length[i]
+    inner = (i > 0) & (i < len(path.s0) - 1)
+    f = np.where(inner, np.clip(f, 0.0, 1.0), f)
+    f = np.where((i == 0) & (len(path.s0) > 1), np.minimum(f, 1.0), f)
+    f = np.where((i == len(path.s0) - 1) & (len(path.s0) > 1), np.maximum(f, 0.0), f)
+    return path.c0[i] + f[..., None] * (path.c1[i] - path.c0[i]), i
