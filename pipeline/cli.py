@@ -206,12 +206,15 @@ def blind_check(workflow, cases, pairs, seed, kinds, out):
     try:
         s = bc(workflow, cases, seed, out, pairs=pairs, kinds=kinds.split(",") if kinds else None,
                progress=lambda i, c: click.echo(f"case {i}: truth {list(c['truth']) or ['none']} found {c['found'] or ['none']} "
-                                                f"shrink {c['shrink']:.2f}", err=True))
+                                                f"shrink {c['shrink']:.2f}"
+                                                + (f" (missed within its stated limit: {[m['effect'] for m in c['missed']]})"
+                                                   if c.get("missed_within_stated_limit") else ""), err=True))
     except (WorkflowError, InputError) as e:
         click.echo(f"error: {e}", err=True)
         sys.exit(2)
     click.echo(json.dumps({k: s[k] for k in ("cases", "pairs", "top1_accuracy", "none_correct", "median_shrink",
-                                             "param_error", "pair_order_ok", "wall_s")}, indent=2))
+                                             "param_error", "pair_order_ok", "misses_within_stated_limit", "wall_s")},
+                          indent=2))
 
 
 def _print_summary(s: dict) -> None:

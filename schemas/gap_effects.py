@@ -11,4 +11,6 @@ SCHEMA = pa.schema([
     pa.field('gain_sigma2', pa.float64()),         # held-out SSE improvement / noise variance
     pa.field('threshold_sigma2', pa.float64()),    # χ² quantile it must beat
     pa.field('chosen', pa.bool_()),
+    pa.field('hidden_up_to_um', pa.float64()),     # not chosen: largest RMS of it that would not be claimed
+    pa.field('ambiguous_with', pa.string()),       # chosen: JSON list of effects it cannot be told from here
 ])

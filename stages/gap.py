@@ -18,7 +18,12 @@
    effect is added — a simpler one when the richer one is not better by the χ² margin of its extra
    parameters — with the nonlinear parameters of those already chosen re-fitted; then one swap pass
    and a backward check (every kept effect must still pass both tests given the others). The order
-   of size is the RMS of each effect's fitted contribution.
+   of size is the RMS of each effect's fitted contribution. What it could not see: for every effect
+   not chosen, ``detection_limits`` — the largest RMS of it that the two tests would not claim next
+   to the chosen effects (large when its signature is nearly collinear with theirs on these points,
+   e.g. tool wear ∝ L and a thermal drift along z on a raster whose cut length grows with time),
+   and ``ambiguous_with``: per chosen effect, those it explains to a canonical correlation ≥
+   ``AMBIGUOUS_RHO``.
 4. ``how far``: held-out predictions (each point predicted by the fit without its block, nonlinear
    parameters re-fitted: ``fold_fits``) with the chosen effects added; here as the effects' terms.
    The caller (``pipeline.gap.how_far``) re-runs the prediction itself for the model effects
@@ -742,6 +747,7 @@ def diagnose(F: dict, noise_um: Optional[float] = None, floor_um: float = 0.0) -
             contrib[e.name] = e.basis(F, t) @ b
             k += e.n_lin
     order = sorted(contrib, key=lambda nme: -float(np.sqrt(np.mean(contrib[nme] ** 2))))
+    limits = detection_limits(F, chosen, cat, sigma, floor_um)
     after = y - base_pred
     rms_b, rms_a = _rms(y), _rms(after)
     for i, r in enumerate(first_round or []):
@@ -763,8 +769,80 @@ def diagnose(F: dict, noise_um: Optional[float] = None, floor_um: float = 0.0) -
         # the same on the points where the chosen effects act (held-out prediction > 10 % of its peak)
         "shrink_where_acting": _shrink_acting(y, after, base_pred),
         "ranking": ranking,
+        "detection_limits": limits,
+        "ambiguous_with": ambiguous_with(limits, order),
         "_after": after, "_contrib": contrib, "_blocks": blk, "_fold": fold, "_chosen": chosen,
     }
+
+
+AMBIGUOUS_RHO = 0.95   # reported as ambiguous: the chosen effect's signatures explain ≥ 90 % of the other's
+
+
+def _orth(X: np.ndarray) -> np.ndarray:
+    """Orthonormal basis of the columns of X (rank-revealing)."""
+    if X.shape[1] == 0:
+        return X
+    U, sv, _ = np.linalg.svd(X, full_matrices=False)
+    return U[:, sv > max(sv[0], 1e-300) * 1e-9] if sv.size and sv[0] > 0 else U[:, :0]
+
+
+def detection_limits(F, chosen: list, cat: list, sigma: float, floor_um: float = 0.0) -> dict:
+    """What the selection could have missed: for every catalogue effect not chosen, the largest RMS
+    (µm over the points) of a signature of it that would not be claimed next to the chosen effects.
+
+    A signature v of effect G (any of its nonlinear values, any combination of its linear ones) of
+    RMS r has the part (1 − ρ²)·r² not explained by the chosen effects' signatures (ρ: its largest
+    canonical correlation with them at their fitted values; 0 when none was chosen). The selection
+    claims it only when that part passes both tests of ``diagnose``: n·(1 − ρ²)·r²/σ² beyond the χ²
+    quantile of G's parameter count, and √(n·(1 − ρ²)·r²/support) ≥ ½·hypot(σ, floor), support =
+    the points where v exceeds a tenth of its peak. ``hidden_up_to_um`` is the larger r at which
+    either fails, maximised over G's signatures; ``correlation`` is that signature's ρ and
+    ``masked_by`` the chosen effect whose own signatures correlate most with it. A nearly collinear
+    pair on the part (ρ → 1) makes the limit large: the data cannot tell the two effects apart.
+    """
+    from scipy.stats import chi2
+    n = len(F["q_deg"])
+    sub = _subset(np.ones(n, bool))
+    names = {e.name for e, _ in chosen}
+    Qc = _orth(np.hstack([e.basis(F, t) for e, t in chosen])[sub]) if chosen else None
+    Qe = [(e.name, _orth(e.basis(F, t)[sub])) for e, t in chosen]
+    size = 0.5 * math.hypot(sigma, floor_um)
+    out = {}
+    for G in cat:
+        if G.name in names:
+            continue
+        thr = float(chi2.ppf(1 - ALPHA, G.n_params))
+        best = None
+        for th in G.grid:
+            Qg = _orth(G.basis(F, th)[sub])
+            if Qg.shape[1] == 0:
+                continue
+            if Qc is not None and Qc.shape[1]:
+                u, sv, _ = np.linalg.svd(Qg.T @ Qc, full_matrices=False)
+                rho, v = float(min(sv[0], 1.0)), Qg @ u[:, 0]
+            else:
+                rho, v = 0.0, Qg[:, 0]
+            unique = max(1.0 - rho * rho, 1e-12)
+            frac = float(np.mean(np.abs(v) > 0.1 * np.abs(v).max()))
+            r = max(sigma * math.sqrt(thr / (n * unique)), size * math.sqrt(frac / unique))
+            if best is None or r > best[0]:
+                by = max(Qe, key=lambda q: float(np.linalg.norm(q[1].T @ v)))[0] if Qe else None
+                best = (r, rho, by)
+        if best is not None:
+            out[G.name] = {"hidden_up_to_um": best[0], "correlation": best[1], "masked_by": best[2]}
+    return out
+
+
+def ambiguous_with(limits: dict, effects: list) -> dict:
+    """Per chosen effect, the effects not chosen whose signatures on these points it explains to a
+    canonical correlation of at least ``AMBIGUOUS_RHO``: the data cannot tell them apart, and up to
+    ``hidden_up_to_um`` of them may be inside the chosen effect's fit."""
+    out = {e: [] for e in effects}
+    for g, lim in sorted(limits.items(), key=lambda kv: -kv[1]["correlation"]):
+        if lim["masked_by"] in out and lim["correlation"] >= AMBIGUOUS_RHO:
+            out[lim["masked_by"]].append({"effect": g, "correlation": lim["correlation"],
+                                          "hidden_up_to_um": lim["hidden_up_to_um"]})
+    return {k: v for k, v in out.items() if v}
 
 
 def _shrink_acting(y, after, pred) -> Optional[float]:
@@ -838,4 +916,8 @@ def gap_effects_table(res: dict) -> pa.Table:
         "gain_sigma2": [r["gain_sigma2"] for r in rows],
         "threshold_sigma2": [r["threshold_sigma2"] for r in rows],
         "chosen": [r["effect"] in chosen for r in rows],
+        "hidden_up_to_um": [float(res.get("detection_limits", {}).get(r["effect"], {}).get("hidden_up_to_um", np.nan))
+                            for r in rows],
+        "ambiguous_with": pa.array([json.dumps(res.get("ambiguous_with", {}).get(r["effect"], [])) for r in rows],
+                                   pa.string()),
     })
