@@ -405,6 +405,11 @@ def report(gdir: Path, F: dict, res: dict, summary: dict) -> None:
     wh = "".join(f"<tr><td>{w['bbox_mm']}</td><td>{w['pass_range']}</td><td>{w['contact_deg']}</td>"
                  f"<td>{w['time_s']}</td><td>{w['mean_residual_um']:.2f}</td><td>{w['ci95_um']}</td></tr>"
                  for w in summary["where"])
+    lim = "".join(f"<tr><td>{k}</td><td>{v['hidden_up_to_um']:.2f}</td><td>{v['correlation']:.3f}</td>"
+                  f"<td>{v['masked_by'] or '(noise)'}</td></tr>"
+                  for k, v in sorted(summary.get("detection_limits", {}).items(), key=lambda kv: -kv[1]["hidden_up_to_um"]))
+    amb = "; ".join(f"{e}: cannot be told from " + ", ".join(f"{a['effect']} (correlation {a['correlation']:.3f})" for a in v)
+                    for e, v in summary.get("ambiguous_with", {}).items())
     html = f"""<html><head><meta charset="utf-8"><title>Gap diagnosis</title></head><body>
 <h1>Sim-to-real gap</h1>
 <p>Effect: <b>{summary['effect']}</b>; all added: {summary['effects']}; parameters: <code>{json.dumps(summary['params'])}</code></p>
@@ -414,6 +419,9 @@ noise σ {summary['sigma_um']:.3f} µm; {summary['n_points']} points, {summary['
 <img src="residual_map.png">
 <h2>Effect ranking (first round, held-out blocks)</h2>
 <table border=1><tr><th>rank</th><th>effect</th><th>RMS after µm</th><th>gain / σ²</th><th>threshold</th><th>significant</th></tr>{rows}</table>
+<h2>Not seen: detection limits next to the effects found</h2>
+<p>{amb or "No effect found is ambiguous with another on these points."}</p>
+<table border=1><tr><th>effect</th><th>would not be claimed up to (RMS µm)</th><th>signature correlation</th><th>with</th></tr>{lim}</table>
 <h2>Where (blocks with mean residual beyond the noise)</h2>
 <table border=1><tr><th>bbox mm</th><th>passes</th><th>q deg</th><th>time s</th><th>mean µm</th><th>95 %</th></tr>{wh}</table>
 </body></html>"""

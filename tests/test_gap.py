@@ -524,6 +524,8 @@ def test_cli_run_simulate_diagnose_end_to_end_on_two_rows(tmp_path):
     assert s["rms_after_um"] < 0.5 * s["rms_before_um"] and s["shrink"] == pytest.approx(1 - s["rms_after_um"] / s["rms_before_um"])
     assert s["where"] and all(k in s["where"][0] for k in ("bbox_mm", "pass_range", "contact_deg", "time_s", "mean_residual_um"))
     assert "residual_map.png" in (g / "index.html").read_text() and (g / "residual_map.png").stat().st_size > 10_000
+    assert "runout" not in s["detection_limits"] and s["detection_limits"]["tool_wear"]["hidden_up_to_um"] > 0
+    assert "Not seen" in (g / "index.html").read_text()
     pts = pq.read_table(tmp_path / "out" / "tables" / "gap_points" / "m.parquet")
     eff = pq.read_table(tmp_path / "out" / "tables" / "gap_effects" / "m.parquet")
     assert pts.num_rows == s["n_points"] and eff.column("effect").to_pylist()[0] == "runout"
