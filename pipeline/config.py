@@ -119,6 +119,10 @@ class Correct(_Strict):
     max_move_um: float = Field(50.0, gt=0)   # larger vertex moves are clipped and listed
     tol_um: float = Field(0.1, gt=0)         # iterate until the largest change is below this
     max_iter: int = Field(5, ge=1, le=50)
+    # rounds 2…: largest fraction of the way a vertex goes from its last move to the move the new
+    # prediction asks for (1 = the plain fixed point P = P0 − e(P)·n); a vertex whose change does
+    # not shrink from round to round has its fraction halved (see stages.correct.correct_once)
+    relax: float = Field(1.0, gt=0, le=1)
     ln_normals: bool = False                 # also write Heidenhain-style LN blocks with normals
     comp_table: bool = False                 # also write a contact-angle compensation table
 

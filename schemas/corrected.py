@@ -21,6 +21,7 @@ SCHEMA = pa.schema([
     pa.field('change_um', pa.float64()),      # |move| of the last round (iteration stops below tol_um)
     pa.field('clipped', pa.bool_()),          # the move was limited to correct.max_move_um
     pa.field('iteration', pa.int32()),        # rounds of predict → correct run so far
+    pa.field('relax', pa.float64()),          # fraction of its step the vertex took in the last round
     pa.field('nx', pa.float64()),             # vertex normal (unit sum of the predicted passes' normals),
     pa.field('ny', pa.float64()),             # NaN where no predicted pass meets the vertex
     pa.field('nz', pa.float64()),

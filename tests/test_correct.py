@@ -735,7 +735,7 @@ def test_stage_run_matches_schema():
     assert table.num_rows == int((motion <= 3).sum())
     assert set(table.column("iteration").to_pylist()) == {1}
     assert correct.NAME == "correct" and correct.INPUTS == ("blocks", "passes", "errors")
-    assert correct.OUTPUTS == ("corrected",) and correct.PARAMS == ("correct.max_move_um",)
+    assert correct.OUTPUTS == ("corrected",) and correct.PARAMS == ("correct.max_move_um", "correct.relax")
 
 
 def test_incremental_program_random_moves_reverse_check():
@@ -918,9 +918,10 @@ def test_pass_missing_in_a_later_round_keeps_its_round_one_error():
     full2 = _errors(passes, np.where(np.arange(n) == gone, 5.0, err2), normals)   # what the fallback should give
     part2 = _errors(passes, err2, normals).filter(pa.array(np.arange(n) != gone))
     ins = {"blocks": blocks, "passes": passes, "corrected": r1, "round_passes": passes}
-    got = run({**ins, "errors": part2, "first_errors": first}, {"correct": {}})["corrected"]
-    want = run({**ins, "errors": full2}, {"correct": {}})["corrected"]
-    without = run({**ins, "errors": part2}, {"correct": {}})["corrected"]
+    full_step = {"correct": {"relax": 1.0}}
+    got = run({**ins, "errors": part2, "first_errors": first}, full_step)["corrected"]
+    want = run({**ins, "errors": full2}, full_step)["corrected"]
+    without = run({**ins, "errors": part2}, full_step)["corrected"]
     for c in ("x_new_mm", "y_new_mm", "z_new_mm", "move_um"):
         np.testing.assert_allclose(got.column(c).to_numpy(), want.column(c).to_numpy(), rtol=0, atol=1e-12)
     # without the fallback the pass's vertices follow its neighbours alone (7 µm instead of 6)
@@ -928,3 +929,47 @@ def test_pass_missing_in_a_later_round_keeps_its_round_one_error():
     assert at.sum() == 2
     np.testing.assert_allclose(got.column("move_um").to_numpy()[at], 6.0, rtol=1e-9)
     np.testing.assert_allclose(without.column("move_um").to_numpy()[at], 7.0, rtol=1e-9)
+
+
+def _linear_rounds(relax: float, e0: float, k: float, rounds: int):
+    """Rounds of ``correct.run`` on a synthetic prediction whose error grows with the move:
+    e(s) = e0 + k·s, s = how far the pass has moved into the material (µm along −n). The surface
+    then deviates from the original by e(s) − s; its fixed point is s* = e0 / (1 − k)."""
+    from stages.correct import run
+    data, blocks, passes = _load(SAMPLES[0])
+    passes = passes.sort_by("pass_id")
+    n = passes.num_rows
+    normal = np.array([0.6, 0.0, 0.8])
+    normals = np.tile(normal, (n, 1))
+    params = {"correct": {"relax": relax, "max_move_um": 1e4}}
+    cor = run({"blocks": blocks, "passes": passes, "errors": _errors(passes, np.full(n, e0), normals)},
+              params)["corrected"]
+    dev = []
+    for _ in range(rounds):
+        mv = np.stack([cor.column(f"{a}_new_mm").to_numpy() - cor.column(f"{a}_mm").to_numpy()
+                       for a in "xyz"], 1) * 1e3
+        s = -(mv @ normal)
+        moved = cor.column("move_um").to_numpy() > 0
+        s_pass = float(np.median(s[moved]))           # every predicted vertex moves alike
+        dev.append(e0 + k * s_pass - s_pass)
+        cor = run({"blocks": blocks, "passes": passes, "corrected": cor, "round_passes": passes,
+                   "errors": _errors(passes, np.full(n, e0 + k * s_pass), normals)}, params)["corrected"]
+    return np.array(dev)
+
+
+def test_rounds_take_half_steps_where_they_do_not_contract():
+    """An error that falls by 1.5 µm per µm the path moves in (k = −1.5): the plain fixed point
+    P = P0 − e(P)·n would flip and grow by k each round; the vertices see their change grow, halve
+    their step and the deviation from the original surface goes to 0. A mild dependence (k = 0.2)
+    contracts by itself: full steps, the deviation falls by k each round. References: the linear
+    map's closed forms (fixed point e0 / (1 − k)), not the code."""
+    dev = _linear_rounds(1.0, 10.0, -1.5, 8)
+    # round 1 leaves k·e0 = −15; round 2 would overshoot to 22.5 (|change| 25 > 10): half step
+    np.testing.assert_allclose(dev[:2], [-15.0, 3.75], rtol=1e-9)
+    assert np.all(np.abs(dev[2:]) < np.abs(dev[1:-1]))
+    assert abs(dev[-1]) < 0.01 * abs(dev[0])
+    mild = _linear_rounds(1.0, 10.0, 0.2, 4)
+    np.testing.assert_allclose(mild[1:] / mild[:-1], 0.2, rtol=1e-6)
+    # relax caps the step: 0.5 from round 2 on, factor 1 − 0.5·(1 − k) = 0.6
+    capped = _linear_rounds(0.5, 10.0, 0.2, 4)
+    np.testing.assert_allclose(capped[1:] / capped[:-1], 0.6, rtol=1e-6)
