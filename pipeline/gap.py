@@ -299,11 +299,24 @@ def diagnose_points(F: dict, sigma: Optional[float], floor_um: float = 0.0,
     a ``predictor`` is given), then "how far" with the effects added to the simulation."""
     from stages.gap import diagnose, where
     F = add_model_responses(F, predictor)
-    res = diagnose(F, sigma, floor_um)
-    res = how_far(F, res, predictor)
+    # one BLAS thread: the selection makes ~20,000 products of ≤ 20,000 × 10 matrices, which a
+    # second thread does not speed up, and whose threads spin-wait for a time slice when another
+    # job holds a core (100,000-point bench at load 2–3: 154–171 s with OpenBLAS's 2 threads, 30 s with one)
+    with _one_blas_thread():
+        res = diagnose(F, sigma, floor_um)
+        res = how_far(F, res, predictor)
     res["where"] = where(F, F["residual_um"], res["sigma_um"], res["_blocks"])
     res["where_after"] = where(F, res["_after"], res["sigma_um"], res["_blocks"])
     return res
+
+
+def _one_blas_thread():
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:            # an environment installed before the dependency: run as before
+        import contextlib
+        return contextlib.nullcontext()
+    return threadpool_limits(limits=1, user_api="blas")
 
 
 def diagnose_cmd(workflow: str, measurements: str, out: Optional[str] = None) -> dict:
