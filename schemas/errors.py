@@ -12,7 +12,9 @@ SCHEMA = pa.schema([
     pa.field('ny', pa.float64()),
     pa.field('nz', pa.float64()),
     pa.field('err_runout_um', pa.float64()),       # −ρ_flute·sin q of the generating flute
-    pa.field('contact_deg', pa.float64()),         # q at the generating point C
+    pa.field('contact_deg', pa.float64()),         # q at the generating point C (of the finishing passage)
     pa.field('spindle_deg', pa.float64()),         # spindle angle θ_C at which deflection was read
     pa.field('flute', pa.int32()),                 # flute that generated C (the deepest cut)
+    pa.field('finished_by', pa.int32()),           # pass whose tooth passage leaves C (the deepest; a
+                                                   # neighbour near the ends of passes shorter than a revolution's feed)
 ])

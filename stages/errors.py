@@ -14,6 +14,11 @@ For the generating point C of a pass (``generating``: φ_C, q_C, n_C) and each f
 - Runout: flute j turns on radius R + ρ_j (ρ_j = e·cos(2πj/N), ``cutting.flute_offsets_mm``); moving
   the edge out by ρ_j along the tool radius moves the surface into the material by ρ_j·sin q.
 - The surface left is that of the flute that cuts deepest: the minimum over flutes.
+- And that of the tooth passage that cuts deepest: C is also swept by the passages of the
+  neighbouring passes of the path within ``passage_envelope.PASSAGE_REVS`` revolutions of feed, each
+  with its own pass's deflection; the error is the minimum of their stand-off from C plus their
+  error at C (``passage_envelope``). ``finished_by`` names the pass whose passage leaves C (the
+  pass itself but near the ends of passes shorter than a revolution's feed).
 - Shape error: the tool profile table (claim 2, ``tool.profile``: CSV ``contact_deg,error_um``,
   error_um > 0 = the tool is smaller than nominal there = material left), linearly interpolated at
   q_C and held constant beyond its first/last row. A profile measured as the envelope of the
@@ -36,7 +41,7 @@ from stages import cutting
 from stages.forces import list_values, match_passes, pick_entry, program_tool_number
 
 NAME = "errors"
-VERSION = "2"
+VERSION = "3"
 INPUTS = ("passes", "generating", "deflection")
 OUTPUTS = ("errors",)
 PARAMS = ("tool",)
@@ -208,6 +213,10 @@ def run(inputs: dict, params: dict) -> dict:
         tip_z = tip_z - cutting.corner_radius_mm(tool)
     z_c = contact_height_mm(tool, q, gen_xyz[:, 2], tip_z)
     res = machining_error(dx, dy, col("rotation_deg"), q, normal, z_c, tool, profile)
+    finished_by = pass_ids.copy()
+    res["contact_deg"] = q.copy()
+    if len(d_ids):
+        _deepest_passage(res, finished_by, passes, rows, gen_xyz, normal, defl, tool, profile)
     table = pa.table({
         "program_id": gen.column("program_id"),
         "pass_id": pa.array(pass_ids.astype(np.int32)),
@@ -216,11 +225,85 @@ def run(inputs: dict, params: dict) -> dict:
         "err_um": res["err_um"],
         "nx": normal[:, 0], "ny": normal[:, 1], "nz": normal[:, 2],
         "err_runout_um": res["err_runout_um"],
-        "contact_deg": q,
+        "contact_deg": res["contact_deg"],
         "spindle_deg": res["spindle_deg"],
         "flute": res["flute"],
+        "finished_by": pa.array(finished_by.astype(np.int32)),
     })
     return {"errors": table}
+
+
+def _deepest_passage(res: dict, finished_by: np.ndarray, passes: pa.Table, rows: np.ndarray,
+                     gen_xyz: np.ndarray, normal: np.ndarray, defl: pa.Table, tool: dict, profile) -> None:
+    """Replace each generating point's error by the deepest tooth passage of the neighbouring passes
+    within ``PASSAGE_REVS`` revolutions of feed along the path, where one cuts deeper (in place).
+
+    Only passes with a deflection row take part (the others' force is not known: pruned or not
+    cutting). See ``stages.passage_envelope``.
+    """
+    from stages import passage_envelope as pe
+    pcol = lambda c: passes.column(c).to_numpy(zero_copy_only=False).astype(float)  # noqa: E731
+    tip0 = np.stack([pcol("x0_mm"), pcol("y0_mm"), pcol("z0_mm")], 1)
+    tip1 = np.stack([pcol("x1_mm"), pcol("y1_mm"), pcol("z1_mm")], 1)
+    rc = cutting.corner_radius_mm(tool)
+    if tool.get("control_point") == "center":
+        tip0[:, 2] -= rc
+        tip1[:, 2] -= rc
+    n_p = passes.num_rows
+    order_p = np.argsort(passes.column("pass_id").to_numpy(), kind="stable")   # execution order
+    inv = np.empty(n_p, np.int64)
+    inv[order_p] = np.arange(n_p)
+    tip0, tip1 = tip0[order_p], tip1[order_p]
+    feed_move = passes.column("motion").to_numpy(zero_copy_only=False)[order_p] != 0
+    d_rows = match_passes(passes, defl.column("pass_id").to_numpy().astype(np.int64), "deflection")
+    has_defl = np.zeros(n_p, bool)
+    has_defl[inv[d_rows]] = True
+    dx_all = np.zeros((n_p, list_values(defl.column("dx_um"), "deflection.dx_um").shape[1]))
+    dy_all = np.zeros_like(dx_all)
+    dx_all[inv[d_rows]] = list_values(defl.column("dx_um"), "deflection.dx_um")
+    dy_all[inv[d_rows]] = list_values(defl.column("dy_um"), "deflection.dy_um")
+    s0, chain = pe.path_chains(tip0, tip1, feed_move)
+    length = np.linalg.norm(tip1 - tip0, axis=1) * feed_move
+    usable = feed_move & has_defl
+    owner = inv[rows]
+    radius, stick = float(tool["diameter_mm"]) / 2, float(tool.get("stickout_mm") or 4 * float(tool["diameter_mm"]))
+    ok = usable[owner]
+    if not ok.any():
+        return
+    d_own, t_own, _, _, n_own = pe.sweep_distance(gen_xyz, tip0[owner], tip1[owner], radius, rc, stick)
+    s_c = s0[owner] + t_own * length[owner]
+    # C is the mean of surviving pixels, microns inside or off the pass's own nominal envelope (the
+    # sagitta of the patch): the stand-offs are measured from C moved onto it
+    c_on = gen_xyz - d_own[:, None] * n_own
+    f_rev = (pcol("feed_mm_min")[order_p] / np.maximum(pcol("spindle_rpm")[order_p], 1e-9))[owner]
+    reach = np.where(ok, pe.PASSAGE_REVS * f_rev, -1.0)
+    r, j, ta, tb = pe.passage_pairs(owner, s_c, reach, s0, length, chain, has_defl)
+    if r.size == 0:
+        return
+    seg = tip1[j] - tip0[j]
+    a, b = tip0[j] + ta[:, None] * seg, tip0[j] + tb[:, None] * seg
+    dist, t, q, height, _ = pe.sweep_distance(c_on[r], a, b, radius, rc, stick)
+    at = a + t[:, None] * (b - a)
+    rel = c_on[r] - at
+    feed_deg = np.degrees(np.arctan2(seg[:, 1], seg[:, 0]))
+    phi = np.degrees(np.arctan2(rel[:, 1], rel[:, 0])) - feed_deg
+    e = machining_error(dx_all[j], dy_all[j], phi, q, normal[r], height, tool, profile)
+    total = dist * 1000.0 + e["err_um"]
+    # the deepest passage per point (rows sorted by total, first of each row)
+    o = np.lexsort((total, r))
+    first = np.concatenate([[True], r[o][1:] != r[o][:-1]])
+    best = o[first]
+    win = total[best] < res["err_um"][r[best]]
+    k, w = r[best][win], best[win]
+    off = dist[w] * 1000.0                      # the stand-off counts as material left by deflection
+    res["err_deflection_um"][k] = e["err_deflection_um"][w] + off
+    res["err_runout_um"][k] = e["err_runout_um"][w]
+    res["err_shape_um"][k] = e["err_shape_um"][w]
+    res["err_um"][k] = total[w]
+    res["contact_deg"][k] = q[w]
+    res["spindle_deg"][k] = e["spindle_deg"][w]
+    res["flute"][k] = e["flute"][w]
+    finished_by[k] = passes.column("pass_id").to_numpy()[order_p][j[w]]
 
 
 # --------------------------------------------------------------------------------------------

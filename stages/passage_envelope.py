@@ -1,0 +1,170 @@
+"""The tooth passages that finish a surface point: which pass leaves it (kernel of stage ``errors``).
+
+A flute passes a surface point C once per spindle revolution while the tool goes by: the surface
+there is cut by discrete tooth passages, within a revolution or so of the moment the tool is
+nearest C. Each passage carries the deflection of the pass the tool is on at that moment. On a
+pass shorter than the feed per revolution (CAM's 0.05 mm steps over a pocket corner or a boss
+foot) those passages belong to its neighbours along the path, and the deepest of them leaves the
+surface: a 25 µm pass after a 140 µm rest-material cut is finished with the heavy pass's
+deflection, and the heavy pass's own deflected surface is re-cut by the light passes around it.
+The seed's render picks one pass per generating point C from the nominal sweeps; this module
+completes it: the material left at C is the minimum, over the passes of the path within
+``PASSAGE_REVS`` revolutions of feed of C, of
+
+    s_j + e_j(C)          (µm, along the surface normal at C)
+
+with s_j the nominal stand-off of pass j's sweep (the part within the window) from C and e_j(C)
+its error at C (``errors.machining_error``: deflection at the spindle angle its flutes pass C,
+projected on C's normal, plus shape error at its contact angle to C and runout).
+
+Geometry: the tool is convex and axisymmetric (ball, bull-nose, flat end mill with its cylindrical
+side up to the stick-out), so the signed distance from a point to the tool moved along a straight
+segment is a convex function of the position along it; it is minimised by golden-section search
+(to 1e-10 of the segment), vectorised over (point, segment) pairs.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+GOLDEN_ITERS = 48          # (√5 − 1)/2 ^ 48 ≈ 1e-10 of the move length
+_INV_PHI = (math.sqrt(5.0) - 1.0) / 2.0
+
+
+def tool_distance(rel: np.ndarray, radius_mm: float, corner_mm: float, stickout_mm: float):
+    """Signed distance from points to an axisymmetric end mill with its tip at the origin, axis +z.
+
+    Parameters
+    ----------
+    rel : ndarray (..., 3)
+        Points relative to the tool tip, mm.
+    radius_mm, corner_mm, stickout_mm : float
+        Tool radius R, corner radius rc (R: ball, 0: flat), length of the cutting part above the tip.
+
+    Returns
+    -------
+    dist : ndarray (...)
+        Distance to the tool surface, mm; negative inside (approximate depth there).
+    contact_deg : ndarray (...)
+        Contact angle q of the nearest tool point (0 at the tip, 90 on the side).
+    height_mm : ndarray (...)
+        Height of the nearest tool point above the tip.
+    normal : ndarray (..., 3)
+        Outward unit normal of the tool at the nearest point.
+    """
+    R, rc = float(radius_mm), float(corner_mm)
+    a = R - rc                                           # radius of the circle of corner centres
+    x, y, h = rel[..., 0], rel[..., 1], rel[..., 2]
+    r = np.hypot(x, y)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ux = np.where(r > 1e-12, x / np.where(r > 1e-12, r, 1.0), 1.0)
+        uy = np.where(r > 1e-12, y / np.where(r > 1e-12, r, 1.0), 0.0)
+    dr, dh = r - a, h - rc
+    on_bottom = r <= a                                   # under (or inside) the flat bottom
+    on_side = ~on_bottom & (dh > 0)                      # beside the cylindrical side
+    rho = np.hypot(np.maximum(dr, 0.0), np.minimum(dh, 0.0))
+    d_corner = rho - rc
+    q_corner = np.degrees(np.arctan2(np.maximum(dr, 0.0), -np.minimum(dh, 0.0)))
+    dist = np.where(on_bottom, -h, np.where(on_side, r - R, d_corner))
+    # above the stick-out nothing of the tool cuts
+    dist = np.where(h > stickout_mm, np.maximum(dist, h - stickout_mm), dist)
+    q = np.where(on_bottom, 0.0, np.where(on_side, 90.0, q_corner))
+    height = np.where(on_bottom, 0.0, np.where(on_side, np.clip(h, rc, stickout_mm),
+                                               rc * (1.0 - np.cos(np.radians(q)))))
+    qr = np.radians(q)
+    normal = np.stack([np.sin(qr) * ux, np.sin(qr) * uy, -np.cos(qr)], axis=-1)
+    return dist, q, height, normal
+
+
+def sweep_distance(points: np.ndarray, tip0: np.ndarray, tip1: np.ndarray, radius_mm: float,
+                   corner_mm: float, stickout_mm: float):
+    """Distance from each point to the tool swept from ``tip0`` to ``tip1`` (pairs, vectorised).
+
+    Parameters
+    ----------
+    points, tip0, tip1 : ndarray (K, 3)
+
+    Returns
+    -------
+    dist : ndarray (K,) mm (negative inside)
+    t : ndarray (K,) position along the move of the nearest tool position, in [0, 1]
+    contact_deg, height_mm : ndarray (K,)
+    normal : ndarray (K, 3) outward tool normal at the nearest point
+    """
+    seg = tip1 - tip0
+
+    def f(t):
+        return tool_distance(points - tip0 - t[:, None] * seg, radius_mm, corner_mm, stickout_mm)[0]
+
+    lo, hi = np.zeros(len(points)), np.ones(len(points))
+    m1, m2 = hi - _INV_PHI * (hi - lo), lo + _INV_PHI * (hi - lo)
+    f1, f2 = f(m1), f(m2)
+    for _ in range(GOLDEN_ITERS):
+        left = f1 <= f2                                  # the minimum lies in [lo, m2]
+        hi = np.where(left, m2, hi)
+        lo = np.where(left, lo, m1)
+        n1 = np.where(left, hi - _INV_PHI * (hi - lo), m2)
+        n2 = np.where(left, m1, lo + _INV_PHI * (hi - lo))
+        fn = f(np.where(left, n1, n2))
+        f1, f2 = np.where(left, fn, f2), np.where(left, f1, fn)
+        m1, m2 = n1, n2
+    t = 0.5 * (lo + hi)
+    # the ends: a convex function on [0, 1] may be smallest there
+    cand = np.stack([t, np.zeros_like(t), np.ones_like(t)], 1)
+    dists = np.stack([f(cand[:, k]) for k in range(3)], 1)
+    t = cand[np.arange(len(t)), np.argmin(dists, axis=1)]
+    dist, q, height, normal = tool_distance(points - tip0 - t[:, None] * seg, radius_mm, corner_mm, stickout_mm)
+    return dist, t, q, height, normal
+
+
+# a flute passes C within half a revolution of the nominal passage; the passages one revolution
+# before and after it also sweep C (they sit one feed per revolution away along the path)
+PASSAGE_REVS = 1.5
+
+
+def path_chains(tip0: np.ndarray, tip1: np.ndarray, usable: np.ndarray):
+    """Path length at the start of each move and its chain (moves joined end to start).
+
+    Parameters
+    ----------
+    tip0, tip1 : ndarray (P, 3), moves in execution order
+    usable : ndarray (P,) bool, moves that cut (feed moves); the others break the chain
+
+    Returns
+    -------
+    s0 : ndarray (P,) path length at each move's start (mm, cumulative over usable moves)
+    chain : ndarray (P,) int, chain id (-1 for moves that are not usable)
+    """
+    length = np.linalg.norm(tip1 - tip0, axis=1) * usable
+    s0 = np.concatenate([[0.0], np.cumsum(length)[:-1]])
+    joined = np.zeros(len(tip0), bool)
+    joined[1:] = usable[1:] & usable[:-1] & (np.linalg.norm(tip0[1:] - tip1[:-1], axis=1) < 1e-6)
+    chain = np.cumsum(~joined) - 1
+    return s0, np.where(usable, chain, -1)
+
+
+def passage_pairs(owner: np.ndarray, s_c: np.ndarray, reach: np.ndarray, s0: np.ndarray,
+                  length: np.ndarray, chain: np.ndarray, known: np.ndarray):
+    """Moves of the owner's chain (other than the owner) within ``reach`` of path position ``s_c``
+    whose error is ``known`` (a move without it still joins the chain).
+
+    Returns
+    -------
+    row, move : ndarray (K,) int, the point's row and the move
+    ta, tb : ndarray (K,) the part of the move inside [s_c − reach, s_c + reach] (fractions)
+    """
+    from stages.geometry import ragged_ranges
+    lo, hi = s_c - reach, s_c + reach
+    # moves are in execution order, so s0 is non-decreasing: the moves overlapping [lo, hi]
+    first = np.searchsorted(s0 + length, lo, side="left")
+    last = np.searchsorted(s0, hi, side="right")
+    count = np.maximum(last - first, 0)
+    move = ragged_ranges(first, count)
+    row = np.repeat(np.arange(len(owner)), count)
+    keep = (move != owner[row]) & (chain[move] == chain[owner[row]]) & (length[move] > 0) & known[move]
+    row, move = row[keep], move[keep]
+    ta = np.clip((lo[row] - s0[move]) / length[move], 0.0, 1.0)
+    tb = np.clip((hi[row] - s0[move]) / length[move], 0.0, 1.0)
+    keep = tb > ta
+    return row[keep], move[keep], ta[keep], tb[keep]
