@@ -17,6 +17,11 @@ walls and the boss, where the error is):
    rigid machine (cusps and feed marks, which no path correction removes, are not counted).
 
     python3 bench/closed_loop_pipeline_samples.py [--out DIR] [--keep] [--prune DEG] [--max-move UM] [X0 X1 Y0 Y1 ...]
+    python3 bench/closed_loop_pipeline_samples.py --whole [--out DIR] [--prune DEG]    (1–2 h)
+
+``--whole`` runs the whole finishing program as written (no window cut, no band edges) and probes
+the whole finished surface; every run reports the RMS also by contact-angle band of the probe
+points (floors q < 30°, slopes 30–60°, walls ≥ 60°).
 """
 from __future__ import annotations
 
@@ -87,6 +92,9 @@ def workflow(root: Path, max_iter: int, prune_deg=None, max_move_um=None) -> Pat
     return p
 
 
+Q_BANDS = ((0.0, 30.0, "q<30"), (30.0, 60.0, "q30-60"), (60.0, 91.0, "q>=60"))
+
+
 def vm_errors(window, programs: dict, wf: dict) -> dict:
     import pyarrow as pa
     from stages.parse import parse_program
@@ -126,6 +134,9 @@ def vm_errors(window, programs: dict, wf: dict) -> dict:
         e = machine(text, False).probe(pts, nrm) - ideal
         out[name] = {"rms_um": float(np.sqrt(np.mean(e ** 2))), "p95_abs_um": float(np.percentile(np.abs(e), 95)),
                      "max_abs_um": float(np.abs(e).max())}
+        for lo, hi, band in Q_BANDS:
+            m = (q >= lo) & (q < hi)
+            out[name][band] = {"points": int(m.sum()), "rms_um": float(np.sqrt(np.mean(e[m] ** 2))) if m.any() else None}
     return out
 
 
@@ -139,17 +150,20 @@ def main():
                          "sample workflow's 45° (floors below it are left as machined)")
     ap.add_argument("--max-move", type=float, default=None,
                     help="clip of the vertex moves, µm; default: the sample workflow's correct.max_move_um")
+    ap.add_argument("--whole", action="store_true", help="the whole program, probed over the whole part")
     ap.add_argument("window", nargs="*", type=float)
     args = ap.parse_args()
     wins = [tuple(args.window[i:i + 4]) for i in range(0, len(args.window), 4)] or list(WINDOWS)
+    if args.whole:
+        wins = [(-1e9, 1e9, -1e9, 1e9)]
     src = PROGRAM.read_bytes()
     report = []
     for w in wins:
-        root = Path(args.out) / ("x%g-%g_y%g-%g" % w)
+        root = Path(args.out) / ("whole" if args.whole else "x%g-%g_y%g-%g" % w)
         if not args.keep:
             shutil.rmtree(root, ignore_errors=True)
         (root / "nc").mkdir(parents=True, exist_ok=True)
-        band = window_program(src, w[0] - MARGIN_MM, w[1] + MARGIN_MM, w[2] - 1.0, w[3] + 1.0)
+        band = src if args.whole else window_program(src, w[0] - MARGIN_MM, w[1] + MARGIN_MM, w[2] - 1.0, w[3] + 1.0)
         (root / "nc" / "band.nc").write_bytes(band)
         written, wall = {"original": band}, {}
         for mi in (1, 3):
@@ -170,7 +184,8 @@ def main():
         res.update({"window": w, "pipeline_wall_s": wall, "vm_wall_s": round(time.perf_counter() - t0, 1),
                     "rounds": [{k: r[k] for k in ("round", "n_errors", "rms_dev_um", "max_change_um")} for r in rounds]})
         base = res["original"]["rms_um"]
-        print(f"window x {w[0]:g}–{w[1]:g}, y {w[2]:g}–{w[3]:g}: {res['points']} probe points "
+        where = "whole program" if args.whole else f"window x {w[0]:g}–{w[1]:g}, y {w[2]:g}–{w[3]:g}"
+        print(f"{where}: {res['points']} probe points "
               f"(median q {res['q_p50_deg']:.0f}°), pipeline wall s {wall}, VM {res['vm_wall_s']} s")
         for r in res["rounds"]:
             print(f"  round {r['round']}: {r['n_errors']} predicted passes, predicted deviation RMS "
@@ -178,7 +193,9 @@ def main():
         for name in written:
             v = res[name]
             print(f"  virtual machine, {name:>12}: error RMS {v['rms_um']:.3f} um ({100 * v['rms_um'] / base:.1f} % of before), "
-                  f"P95 {v['p95_abs_um']:.2f} um, max {v['max_abs_um']:.2f} um")
+                  f"P95 {v['p95_abs_um']:.2f} um, max {v['max_abs_um']:.2f} um; by q: "
+                  + ", ".join(f"{b} {v[b]['rms_um']:.2f} um ({v[b]['points']} pts)" for _, _, b in Q_BANDS
+                              if v[b]['rms_um'] is not None))
         report.append(res)
     Path(args.out, "summary.json").write_text(json.dumps(report, indent=1, default=str))
 
