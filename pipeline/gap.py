@@ -147,18 +147,11 @@ class Predictor:
         """Predicted error (µm) at the measured points ``rows`` with the model effects ``params``
         (force_scale, runout, tool_contour; others are ignored) added to the simulation (with
         ``runout_part``: its runout part −ρ·sin q alone)."""
-        from stages.gap import _predicted_at_points
-        rows = np.ones(len(F["q_deg"]), bool) if rows is None else rows
+        from stages.gap import predicted_at_points
         tool, scale = self.tool_for(params)
-        out = np.zeros(int(np.count_nonzero(rows)))
-        progs = F["program_id"][rows]
-        nrm = np.stack([F["nx"], F["ny"], F["nz"]], 1)[rows]
-        for prog in dict.fromkeys(progs.tolist()):
-            m = progs == prog
-            d = self._deflection(prog, scale, float(tool.get("runout_um") or 0.0))
-            out[m] = _predicted_at_points(d, prog, F["pass_id"][rows][m], F["q_deg"][rows][m],
-                                          F["phi_deg"][rows][m], nrm[m], tool, runout_part)[0]
-        return out
+        runout = float(tool.get("runout_um") or 0.0)
+        # each point's own pass and the neighbouring passes' tooth passages that sweep it
+        return predicted_at_points(F, lambda prog: self._deflection(prog, scale, runout), tool, rows, runout_part)[0]
 
     def errors_table(self, params: dict) -> pa.Table:
         """The ``errors`` table re-predicted with the model effects added (errors stage re-run)."""

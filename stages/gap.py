@@ -3,7 +3,8 @@
 1. ``associate``: every measured point → the pass whose ball centre segment is nearest to the
    point's ideal ball centre p + R·n (the pass that left the surface there), with features: contact
    angle q, rotation angle φ, normal, machining time t, cut length so far L, tool-tip position,
-   distance to the nearest path corner with its angle and inside bisector, feed, predicted error.
+   distance to the nearest path corner with its angle and inside bisector, feed, predicted error
+   (the deepest tooth passage of its own and the neighbouring passes: ``predicted_at_points``).
    Points farther than ``off_part_mm`` from every tool envelope, or whose normal disagrees with the
    envelope's by more than ``MAX_NORMAL_DEG``, are rejected and listed.
 2. ``where``: residual r = measured − predicted; spatial blocks whose mean residual differs from
@@ -78,7 +79,10 @@ def associate(meas: pa.Table, passes: pa.Table, errors: Optional[pa.Table], tool
     The predicted error at a point is the prediction model's (``stages.errors.machining_error``)
     evaluated at the point's own normal, contact and rotation angle with the deflection of its pass
     (``deflection`` table; the nearest predicted pass when its own was not predicted), plus the tool
-    shape error at the point's q. Without a deflection table the pass's ``errors`` row is used.
+    shape error at the point's q; where the tooth passages of neighbouring passes sweep the point
+    (within ``passage_envelope.PASSAGE_REVS`` revolutions of feed along the path: across a corner,
+    beyond a short pass), the deepest of them (``predicted_at_points``). Without a deflection table
+    the pass's ``errors`` row is used.
     """
     if tool["type"] != "ball":
         raise InputError(f"tool.type {tool['type']!r}: the gap diagnosis associates points for ball tools only")
@@ -131,14 +135,9 @@ def associate(meas: pa.Table, passes: pa.Table, errors: Optional[pa.Table], tool
         F["feed_mm_min"][m] = p.feed[r]
         dd = p.c1[r] - p.c0[r]
         F["feed_deg"][m] = np.degrees(np.arctan2(dd[:, 1], dd[:, 0]))
-        if deflection is not None and deflection.num_rows:
-            nm = nrm[m]
-            q = np.degrees(np.arccos(np.clip(nm[:, 2], -1, 1)))
-            phi = (np.degrees(np.arctan2(-nm[:, 1], -nm[:, 0])) - F["feed_deg"][m]) % 360.0
-            pe, pdf, psh = _predicted_at_points(deflection, p.program_id, p.pass_id[r], q, phi, nm, tool)
-        else:
+        if deflection is None or not deflection.num_rows:
             pe, pdf, psh = _predicted(errors, p.program_id, p.pass_id, r)
-        F["predicted_um"][m], F["pred_deflection_um"][m], F["pred_shape_um"][m] = pe, pdf, psh
+            F["predicted_um"][m], F["pred_deflection_um"][m], F["pred_shape_um"][m] = pe, pdf, psh
     F["point_id"] = ids
     F["program_id"] = prog
     F["pass_id"] = pass_id
@@ -163,21 +162,174 @@ def associate(meas: pa.Table, passes: pa.Table, errors: Optional[pa.Table], tool
     # the paths themselves, for the servo lag's tooth-passage envelope (``servo_signature``)
     F["_geometry"] = {"paths": {p.program_id: p for p in paths}, "R": R, "flutes": int(tool.get("flutes") or 2),
                       "cache": []}
+    if deflection is not None and deflection.num_rows:
+        # the neighbouring passes' tooth passages that sweep each point (``passage_geometry``)
+        F["_geometry"]["passages"] = passage_geometry(F, passes, tool)
+        pe, pdf, psh = predicted_at_points(F, lambda prog: deflection, tool)
+        F["predicted_um"], F["pred_deflection_um"], F["pred_shape_um"] = pe, pdf, psh
+        F["residual_um"] = F["measured_um"] - F["predicted_um"]
     return F, rejected
 
 
-def _predicted_at_points(deflection, program_id, pass_ids, q, phi, normal, tool, runout_part: bool = False):
-    """Prediction model at each point: deflection of its pass read at the point's φ, projected on its n.
+# ---------------------------------------------------------------- the deepest tooth passage at a point
+def passage_geometry(F: dict, passes: pa.Table, tool: dict) -> dict:
+    """The tooth passages of the neighbouring passes that sweep each measured point.
+
+    A surface point is cut by discrete tooth passages within about a revolution of the tool passing
+    it; near the ends of passes those passages belong to the neighbouring passes of the path
+    (``stages.passage_envelope``: across a corner, or beyond a pass shorter than the feed per
+    revolution), each with its own deflection. Per program, the moves of the path in execution
+    order (tips; the ``control_point: center`` programs lowered by the corner radius, as the errors
+    stage does), and per (point, move) pair within ``passage_envelope.PASSAGE_REVS`` revolutions of
+    feed of the point along the path: the move's nominal stand-off from the point (µm along the
+    tool normal; the point first moved onto its own pass's nominal envelope, so that pass's own
+    stand-off is 0), the contact angle q, height above the tip and position angle φ (from that
+    move's feed direction) of the tool point nearest it. Depends on the geometry only: computed
+    once per set of points, reused by every prediction re-run (``predicted_at_points``).
+
+    Returns {program_id: dict(pass_id, feed_move, row, move, standoff_um, q, height, phi)}; ``row``
+    indexes F, ``move`` the program's moves (``pass_id[move]``).
+    """
+    from stages import cutting
+    from stages import passage_envelope as pe
+    R = float(tool["diameter_mm"]) / 2
+    rc = cutting.corner_radius_mm(tool)
+    stick = float(tool.get("stickout_mm") or 4 * float(tool["diameter_mm"]))
+    pid_col = np.asarray(passes.column("program_id").to_pylist(), dtype=object)
+    pts = np.stack([F["x_mm"], F["y_mm"], F["z_mm"]], 1)
+    out = {}
+    for prog in dict.fromkeys(F["program_id"].tolist()):
+        sub = passes.filter(pa.array(pid_col == prog))
+        col = lambda c: sub.column(c).to_numpy(zero_copy_only=False).astype(float)  # noqa: E731
+        order = np.argsort(sub.column("pass_id").to_numpy(), kind="stable")      # execution order
+        pid = sub.column("pass_id").to_numpy().astype(np.int64)[order]
+        tip0 = np.stack([col("x0_mm"), col("y0_mm"), col("z0_mm")], 1)[order]
+        tip1 = np.stack([col("x1_mm"), col("y1_mm"), col("z1_mm")], 1)[order]
+        if tool.get("control_point") == "center":
+            tip0[:, 2] -= rc
+            tip1[:, 2] -= rc
+        feed_move = (sub.column("motion").to_numpy(zero_copy_only=False)[order] != 0) \
+            & np.all(np.isfinite(tip0), 1) & np.all(np.isfinite(tip1), 1)
+        tip0, tip1 = np.nan_to_num(tip0), np.nan_to_num(tip1)
+        f_rev = (col("feed_mm_min") / np.maximum(col("spindle_rpm"), 1e-9))[order]
+        s0, chain = pe.path_chains(tip0, tip1, feed_move)
+        length = np.linalg.norm(tip1 - tip0, axis=1) * feed_move
+        m = np.flatnonzero(F["program_id"] == prog)
+        owner = np.clip(np.searchsorted(pid, F["pass_id"][m]), 0, len(pid) - 1)
+        ok = (pid[owner] == F["pass_id"][m]) & feed_move[owner]
+        geo = {"pass_id": pid, "feed_move": feed_move, "row": np.zeros(0, np.int64), "move": np.zeros(0, np.int64)}
+        geo.update({k: np.zeros(0) for k in ("standoff_um", "q", "height", "phi")})
+        out[prog] = geo
+        if not ok.any():
+            continue
+        m, owner = m[ok], owner[ok]
+        d_own, t_own, _, _, n_own = pe.sweep_distance(pts[m], tip0[owner], tip1[owner], R, rc, stick)
+        s_c = s0[owner] + t_own * length[owner]
+        c_on = pts[m] - d_own[:, None] * n_own
+        r, j, ta, tb = pe.passage_pairs(owner, s_c, pe.PASSAGE_REVS * f_rev[owner], s0, length, chain, feed_move)
+        if r.size == 0:
+            continue
+        seg = tip1[j] - tip0[j]
+        a, b = tip0[j] + ta[:, None] * seg, tip0[j] + tb[:, None] * seg
+        dist, t, q, height, _ = pe.sweep_distance(c_on[r], a, b, R, rc, stick)
+        rel = c_on[r] - (a + t[:, None] * (b - a))
+        phi = np.degrees(np.arctan2(rel[:, 1], rel[:, 0]) - np.arctan2(seg[:, 1], seg[:, 0]))
+        geo.update(row=m[r], move=j, standoff_um=dist * 1e3, q=q, height=height, phi=phi)
+    return out
+
+
+def predicted_at_points(F: dict, deflection_of, tool: dict, rows: Optional[np.ndarray] = None,
+                        runout_part: bool = False):
+    """The prediction model at the measured points ``rows`` (bool mask of F; all when None).
+
+    Per point the error its own pass leaves (``_predicted_at_points``: the deflection of its pass at
+    the point's φ, projected on its normal, + runout and shape at its q), then, where the neighbouring
+    passes' tooth passages sweep it (``passage_geometry``), the deepest of them: the minimum over
+    them and its own pass of
+
+        s_j + e_j          (µm along the point's normal)
+
+    with s_j the nominal stand-off of pass j's tool from the point and e_j its error there
+    (``stages.errors.machining_error`` with pass j's deflection at the contact of its tool, the
+    errors stage's ``_deepest_passage`` at a measured point). Only passes with a deflection row
+    take part. ``deflection_of(program_id)`` gives the deflection table to use.
+
+    Returns (error, deflection + runout part, shape part) of the passage that leaves each point; the
+    stand-off is in the error only (it does not scale with the force model). With ``runout_part``
+    the first item is that passage's runout part alone.
+    """
+    from stages.errors import machining_error, read_profile
+    from stages.forces import list_values
+    rows = np.ones(len(F["q_deg"]), bool) if rows is None else np.asarray(rows, bool)
+    idx = np.flatnonzero(rows)
+    pos = np.full(len(rows), -1, np.int64)
+    pos[idx] = np.arange(len(idx))
+    out = [np.zeros(len(idx)) for _ in range(3)]
+    nrm = np.stack([F["nx"], F["ny"], F["nz"]], 1)
+    geos = F.get("_geometry", {}).get("passages", {})
+    profile = read_profile(tool["profile"]) if tool.get("profile") else None
+    progs = F["program_id"][idx]
+    for prog in dict.fromkeys(progs.tolist()):
+        k = idx[progs == prog]
+        d = deflection_of(prog)
+        e, dfl, sh = _predicted_at_points(d, prog, F["pass_id"][k], F["q_deg"][k], F["phi_deg"][k], nrm[k], tool,
+                                          runout_part, full=True)
+        geo = geos.get(prog)
+        if geo is not None and geo["row"].size and d is not None and d.num_rows:
+            sel = rows[geo["row"]]
+            r, j = pos[geo["row"][sel]], geo["move"][sel]
+            pid = np.asarray(d.column("program_id").to_pylist(), dtype=object)
+            dm = np.flatnonzero(pid == prog)
+            d_pass = d.column("pass_id").to_numpy().astype(np.int64)[dm]
+            at = np.searchsorted(geo["pass_id"], d_pass)
+            at_ok = at < len(geo["pass_id"])
+            at_ok[at_ok] = geo["pass_id"][at[at_ok]] == d_pass[at_ok]
+            n_rot = list_values(d.column("dx_um"), "deflection.dx_um").shape[1]
+            dx_all, dy_all = np.zeros((len(geo["pass_id"]), n_rot)), np.zeros((len(geo["pass_id"]), n_rot))
+            has = np.zeros(len(geo["pass_id"]), bool)
+            dx_all[at[at_ok]] = list_values(d.column("dx_um"), "deflection.dx_um")[dm[at_ok]]
+            dy_all[at[at_ok]] = list_values(d.column("dy_um"), "deflection.dy_um")[dm[at_ok]]
+            has[at[at_ok]] = True
+            keep = has[j]
+            r, j = r[keep], j[keep]
+            g = {kk: geo[kk][sel][keep] for kk in ("standoff_um", "q", "height", "phi")}
+            if r.size:
+                ej = machining_error(dx_all[j], dy_all[j], g["phi"], g["q"], nrm[idx[r]], g["height"], tool, profile)
+                total = g["standoff_um"] + ej["err_um"]
+                total = np.where(np.isnan(total), np.inf, total)
+                # the deepest passage per point (pairs sorted by total, the first of each point)
+                o = np.lexsort((total, r))
+                first = np.concatenate([[True], r[o][1:] != r[o][:-1]])
+                best = o[first]
+                own = e["total"]
+                li = np.searchsorted(k, idx[r[best]])           # the point's place among this program's
+                win = total[best] < own[li]
+                li, w = li[win], best[win]
+                e["total"][li] = total[w]
+                e["runout"][li] = ej["err_runout_um"][w]
+                dfl[li] = ej["err_deflection_um"][w] + ej["err_runout_um"][w]
+                sh[li] = ej["err_shape_um"][w]
+        where = pos[k]
+        out[0][where] = np.nan_to_num(e["runout"] if runout_part else e["total"])
+        out[1][where], out[2][where] = np.nan_to_num(dfl), np.nan_to_num(sh)
+    return out[0], out[1], out[2]
+
+
+def _predicted_at_points(deflection, program_id, pass_ids, q, phi, normal, tool, runout_part: bool = False,
+                         full: bool = False):
+    """Prediction model at each point from its own pass alone: the deflection of its pass read at the
+    point's φ, projected on its n (``predicted_at_points`` adds the neighbouring passes' passages).
 
     Returns (error, deflection + runout part, shape part); with ``runout_part`` the first item is
-    the runout part alone (−ρ·sin q of the flute that leaves the surface)."""
+    the runout part alone (−ρ·sin q of the flute that leaves the surface). With ``full``: ({"total":
+    error, "runout": runout part}, deflection + runout part, shape part), NaN kept."""
     from stages.errors import machining_error, read_profile
     from stages.forces import list_values
     z = np.zeros(len(q))
-    pid = np.asarray(deflection.column("program_id").to_pylist(), dtype=object)
-    m = np.flatnonzero(pid == program_id)
+    pid = np.asarray(deflection.column("program_id").to_pylist(), dtype=object) if deflection is not None else []
+    m = np.flatnonzero(pid == program_id) if len(pid) else np.zeros(0, np.int64)
     if not m.size:
-        return z, z.copy(), z.copy()
+        return ({"total": z, "runout": z.copy()}, z.copy(), z.copy()) if full else (z, z.copy(), z.copy())
     d_pass = deflection.column("pass_id").to_numpy()[m]
     order = np.argsort(d_pass)
     d_pass = d_pass[order]
@@ -190,6 +342,9 @@ def _predicted_at_points(deflection, program_id, pass_ids, q, phi, normal, tool,
     z_c = R * (1 - np.cos(np.radians(q)))
     profile = read_profile(tool["profile"]) if tool.get("profile") else None
     res = machining_error(dx, dy, phi, q, normal, z_c, tool, profile)
+    if full:
+        return ({"total": res["err_um"], "runout": res["err_runout_um"]},
+                res["err_deflection_um"] + res["err_runout_um"], res["err_shape_um"])
     return (np.nan_to_num(res["err_runout_um" if runout_part else "err_um"]),
             np.nan_to_num(res["err_deflection_um"] + res["err_runout_um"]),
             np.nan_to_num(res["err_shape_um"]))
