@@ -524,18 +524,22 @@ class VirtualMachine:
                 # spindle angle at which flute j passes φ_C at height zc: φ = −θ − 360 j/Z + lag
                 th = np.degrees(-phi_c - 2 * np.pi * j / Z + lag) % 360.0
                 dt0 = ((th - theta_star + 180.0) % 360.0 - 180.0) / 360.0 * T
-                # deflection at that spindle angle (periodic linear interpolation)
-                fi = th / 360.0 * N_ROT
-                i0 = np.floor(fi).astype(np.int64) % N_ROT
-                w = fi - np.floor(fi)
-                i1 = (i0 + 1) % N_ROT
                 for m in PASSAGES:
                     t = t_star + dt0 + m * T
                     s_along = u * ln[row] + (t - t_star) * v
                     c, at = self._centre_at(p.s0[row] + s_along)
                     # the deflection of the pass the tool is on at that passage: a passage a
                     # revolution beyond the end of a short pass is on its neighbour, and after a
-                    # pocket corner's 120 µm the next pass's own small deflection there over-cut
+                    # pocket corner's 120 µm the next pass's own small deflection there over-cut.
+                    # Each pass's revolution is indexed from its own feed direction (θ_rel = Θ +
+                    # feed angle, Θ the spindle's machine-frame angle): read the neighbour's at the
+                    # same instant, th + its turn (in the own pass's frame, a 94° corner read it
+                    # 94° off in the tooth cycle: −5 µm where +4 µm was right)
+                    turn = np.degrees(np.arctan2(d[at, 1], d[at, 0]) - feed_ang)
+                    fi = ((th + turn) % 360.0) / 360.0 * N_ROT
+                    i0 = np.floor(fi).astype(np.int64) % N_ROT
+                    w = fi - np.floor(fi)
+                    i1 = (i0 + 1) % N_ROT
                     ddx = (1 - w) * dx_rev[at, i0] + w * dx_rev[at, i1]
                     ddy = (1 - w) * dy_rev[at, i0] + w * dy_rev[at, i1]
                     off = np.stack([ddx, ddy, np.zeros_like(ddx)], 1) * 1e-3

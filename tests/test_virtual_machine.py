@@ -163,3 +163,39 @@ def test_tooth_passages_beyond_a_short_pass_carry_the_neighbours_deflection():
     want = min(np.min(sag - 30.0), 0.0)             # or the short pass's own passages: ≥ 0
     assert got == pytest.approx(want, abs=1.0)
     assert got < -25.0                               # before: the short pass's 0 was applied there
+
+
+def test_a_neighbour_round_a_corner_is_read_in_its_own_feed_frame():
+    """A 0.05 mm pass along +x, then a pass along +y (a 90° corner). A point on the −y side of the
+    short pass at the equator (contact azimuth −90°) is within the reach of the second pass's first
+    passages only if that pass is deflected 150 µm towards −y. Its revolution is indexed from its own
+    feed direction: flute j faces the point at θ = −φ − 180°·j + lag with φ = −180° in its frame
+    (lag = R·tan 30° / R = 33.0° at the equator), i.e. 213° and 33°; in the short pass's frame
+    (φ = −90°) it would be 123° and 303°. The deflection is −150 µm only within ±20° of 213° and 33°:
+    read in the right frame the corner is over-cut, read in the short pass's frame it is not."""
+    feed, rpm = 2000.0, 10000.0
+    pts_xy = ((0.0, 0.0), (0.05, 0.0), (0.05, 5.0))
+    ln = [0.05, 5.0]
+    t = np.cumsum([0.0] + [v / feed * 60.0 for v in ln])
+    passes = pa.table({"program_id": ["t"] * 2, "pass_id": pa.array([0, 1], pa.int32()),
+                       "motion": pa.array([1, 1], pa.int8()),
+                       "x0_mm": [pts_xy[0][0], pts_xy[1][0]], "y0_mm": [pts_xy[0][1], pts_xy[1][1]],
+                       "z0_mm": [-1.0, -1.0],
+                       "x1_mm": [pts_xy[1][0], pts_xy[2][0]], "y1_mm": [pts_xy[1][1], pts_xy[2][1]],
+                       "z1_mm": [-1.0, -1.0],
+                       "feed_mm_min": [feed] * 2, "spindle_rpm": [rpm] * 2,
+                       "t_start_s": list(t[:-1]), "t_end_s": list(t[1:])})
+    vm = VirtualMachine(passes, tool(), MAT, RIGID, {"box": [-30, -30, -20, 30, 30, 0]})
+    theta = np.arange(192) * 360.0 / 192
+    lag = np.degrees(np.tan(np.radians(30.0)))
+    near = lambda a: np.abs((theta - a + 180.0) % 360.0 - 180.0) <= 20.0  # noqa: E731
+    dx = np.zeros((2, 192))
+    dy = np.zeros((2, 192))
+    dy[1] = np.where(near(180.0 + lag) | near(lag), -150.0, 0.0)
+    vm._defl_cache[(0.0, 0.0)] = (dx, dy)
+    got = vm.probe(np.array([[0.025, -5.0, 4.0]]), np.array([[0.0, 1.0, 0.0]]))[0]
+    assert got < -30.0
+    # the same deflection in the short pass's frame (shifted by the 90° turn) leaves the point alone
+    dy[1] = np.where(near(90.0 + lag) | near(270.0 + lag), -150.0, 0.0)
+    vm._defl_cache[(0.0, 0.0)] = (dx, dy)
+    assert vm.probe(np.array([[0.025, -5.0, 4.0]]), np.array([[0.0, 1.0, 0.0]]))[0] > -1.0
