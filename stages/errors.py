@@ -233,6 +233,9 @@ def run(inputs: dict, params: dict) -> dict:
     return {"errors": table}
 
 
+PAIR_CHUNK = 50_000     # (point, neighbouring pass) pairs per chunk: bounds the deflection rows held
+
+
 def _deepest_passage(res: dict, finished_by: np.ndarray, passes: pa.Table, rows: np.ndarray,
                      gen_xyz: np.ndarray, normal: np.ndarray, defl: pa.Table, tool: dict, profile) -> None:
     """Replace each generating point's error by the deepest tooth passage of the neighbouring passes
@@ -280,29 +283,43 @@ def _deepest_passage(res: dict, finished_by: np.ndarray, passes: pa.Table, rows:
     r, j, ta, tb = pe.passage_pairs(owner, s_c, reach, s0, length, chain, has_defl)
     if r.size == 0:
         return
-    seg = tip1[j] - tip0[j]
-    a, b = tip0[j] + ta[:, None] * seg, tip0[j] + tb[:, None] * seg
-    dist, t, q, height, _ = pe.sweep_distance(c_on[r], a, b, radius, rc, stick)
-    at = a + t[:, None] * (b - a)
-    rel = c_on[r] - at
-    feed_deg = np.degrees(np.arctan2(seg[:, 1], seg[:, 0]))
-    phi = np.degrees(np.arctan2(rel[:, 1], rel[:, 0])) - feed_deg
-    e = machining_error(dx_all[j], dy_all[j], phi, q, normal[r], height, tool, profile)
-    total = dist * 1000.0 + e["err_um"]
-    # the deepest passage per point (rows sorted by total, first of each row)
-    o = np.lexsort((total, r))
-    first = np.concatenate([[True], r[o][1:] != r[o][:-1]])
-    best = o[first]
-    win = total[best] < res["err_um"][r[best]]
-    k, w = r[best][win], best[win]
-    off = dist[w] * 1000.0                      # the stand-off counts as material left by deflection
-    res["err_deflection_um"][k] = e["err_deflection_um"][w] + off
-    res["err_runout_um"][k] = e["err_runout_um"][w]
-    res["err_shape_um"][k] = e["err_shape_um"][w]
-    res["err_um"][k] = total[w]
-    res["contact_deg"][k] = q[w]
-    res["spindle_deg"][k] = e["spindle_deg"][w]
-    res["flute"][k] = e["flute"][w]
+    def passage(sl):
+        """Stand-off, error parts and contact angle of the pairs ``sl``."""
+        jj, rr = j[sl], r[sl]
+        seg = tip1[jj] - tip0[jj]
+        a, b = tip0[jj] + ta[sl, None] * seg, tip0[jj] + tb[sl, None] * seg
+        dist, t, q, height, _ = pe.sweep_distance(c_on[rr], a, b, radius, rc, stick)
+        rel = c_on[rr] - (a + t[:, None] * (b - a))
+        phi = np.degrees(np.arctan2(rel[:, 1], rel[:, 0]) - np.arctan2(seg[:, 1], seg[:, 0]))
+        e = machining_error(dx_all[jj], dy_all[jj], phi, q, normal[rr], height, tool, profile)
+        return dist * 1000.0, e, q
+
+    # the deepest passage per point, over chunks of pairs (memory: a chunk's deflection rows)
+    best_total = np.full(len(rows), np.inf)
+    best_pair = np.full(len(rows), -1, np.int64)
+    for c0 in range(0, r.size, PAIR_CHUNK):
+        sl = np.arange(c0, min(c0 + PAIR_CHUNK, r.size))
+        off, e, _ = passage(sl)
+        total = off + e["err_um"]
+        o = np.lexsort((total, r[sl]))
+        first = np.concatenate([[True], r[sl][o][1:] != r[sl][o][:-1]])
+        cb = o[first]
+        better = total[cb] < best_total[r[sl][cb]]
+        best_total[r[sl][cb][better]] = total[cb][better]
+        best_pair[r[sl][cb][better]] = sl[cb][better]
+    win = (best_pair >= 0) & (best_total < res["err_um"])
+    k = np.flatnonzero(win)
+    if not k.size:
+        return
+    w = best_pair[k]
+    off, e, q = passage(w)
+    res["err_deflection_um"][k] = e["err_deflection_um"] + off   # the stand-off counts as material left
+    res["err_runout_um"][k] = e["err_runout_um"]
+    res["err_shape_um"][k] = e["err_shape_um"]
+    res["err_um"][k] = off + e["err_um"]
+    res["contact_deg"][k] = q
+    res["spindle_deg"][k] = e["spindle_deg"]
+    res["flute"][k] = e["flute"]
     finished_by[k] = passes.column("pass_id").to_numpy()[order_p][j[w]]
 
 
