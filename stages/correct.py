@@ -52,7 +52,7 @@ import pyarrow as pa
 from stages import InputError
 
 NAME = "correct"
-VERSION = "5"
+VERSION = "6"
 INPUTS = ("blocks", "passes", "errors")
 OUTPUTS = ("corrected",)
 # only the clip limit and the relaxation of rounds 2… change the table; tol_um and max_iter steer
