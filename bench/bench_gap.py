@@ -5,7 +5,8 @@ once first) is probed by the virtual machine at ~100,000 plan points (contact po
 fractions of every cutting chord, from ``scripts/make_gap_samples.py``) with thermal drift and
 0.5 µm noise; the timed part is what ``pipeline diagnose`` does after reading the file:
 association + features, the prediction re-run for the runout signature (forces → deflection →
-errors at 7 runout values), the held-out effect ranking with the greedy/swap selection, "how far"
+errors at 7 runout values), the held-out effect ranking with the greedy/swap selection, the final
+joint fit with every parameter's standard error (``param_uncertainty``), "how far"
 (each fold re-fitted; model effects re-predicted through the stages), the where-map.
 
     python bench/bench_gap.py [--points 100000]
@@ -53,7 +54,8 @@ def main():
     t2 = time.perf_counter()
     out = {"points": int(len(pts)), "passes": int(tabs["passes"].num_rows), "rejected": len(rej),
            "associate_s": round(t1 - t0, 2), "diagnose_s": round(t2 - t1, 2), "total_s": round(t2 - t0, 2),
-           "effect": res["effect"], "effects": res["effects"], "params": res["params"], "shrink": round(res["shrink"], 3),
+           "effect": res["effect"], "effects": res["effects"], "params": res["params"],
+           "params_se": res["params_se"], "params_se_sigma_um": res["params_se_info"]["sigma_um"], "shrink": round(res["shrink"], 3),
            "how_added": res.get("how_added")}
     print(json.dumps(out, indent=2))
 

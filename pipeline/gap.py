@@ -4,7 +4,8 @@ The engine runs the workflow (through its cache) up to the tables a command need
 the virtual machine (parsed passes only), ``errors`` for the diagnosis (the prediction). Outputs:
 
 - ``<out>/tables/gap_points/<name>.parquet``, ``<out>/tables/gap_effects/<name>.parquet``
-- ``<out>/gap/summary.json`` (where, effect, effects, params, rms/p95/max before and after, shrink)
+- ``<out>/gap/summary.json`` (where, effect, effects, params with params_se / params_cov, rms/p95/max
+  before and after, shrink)
 - ``<out>/gap/index.html`` + ``residual_map.png`` (before / after) + ``rejected.csv``
 - ``<out>/blind/summary.json`` for the blind check.
 """
@@ -356,7 +357,8 @@ def diagnose_cmd(workflow: str, measurements: str, out: Optional[str] = None) ->
 
 
 def public_summary(res: dict) -> dict:
-    keys = ("effect", "effects", "params", "where", "where_after", "sigma_um", "n_points", "n_blocks",
+    keys = ("effect", "effects", "params", "params_se", "params_se_info", "params_cov", "where", "where_after",
+            "sigma_um", "n_points", "n_blocks",
             "rms_before_um", "rms_after_um", "p95_before_um", "p95_after_um", "max_before_um", "max_after_um",
             "shrink", "shrink_where_acting", "ranking", "ambiguous_with",
             "detection_limits")  # after: held-out, effects added to the simulation
@@ -414,6 +416,15 @@ def report(gdir: Path, F: dict, res: dict, summary: dict) -> None:
     lim = "".join(f"<tr><td>{k}</td><td>{v['hidden_up_to_um']:.2f}</td><td>{v['correlation']:.3f}</td>"
                   f"<td>{v['masked_by'] or '(noise)'}</td></tr>"
                   for k, v in sorted(summary.get("detection_limits", {}).items(), key=lambda kv: -kv[1]["hidden_up_to_um"]))
+    prm = "".join(
+        f"<tr><td>{e}</td><td>{k}</td><td>{v:.4g}</td>"
+        + (f"<td>{summary['params_se'][e][k]:.2g}</td><td>[{v - 2 * summary['params_se'][e][k]:.4g}, "
+           f"{v + 2 * summary['params_se'][e][k]:.4g}]</td>"
+           if summary.get("params_se", {}).get(e, {}).get(k) is not None else
+           f"<td colspan=2>{summary.get('params_se_info', {}).get('not_identifiable', {}).get(e + '.' + k, 'no standard error')}</td>")
+        + "</tr>"
+        for e, p in summary["params"].items() for k, v in p.items() if isinstance(v, (int, float)))
+    se_info = summary.get("params_se_info", {})
     amb = "; ".join(f"{e}: cannot be told from " + ", ".join(f"{a['effect']} (correlation {a['correlation']:.3f})" for a in v)
                     for e, v in summary.get("ambiguous_with", {}).items())
     html = f"""<html><head><meta charset="utf-8"><title>Gap diagnosis</title></head><body>
@@ -423,6 +434,11 @@ def report(gdir: Path, F: dict, res: dict, summary: dict) -> None:
 P95 {summary['p95_before_um']:.3f} → {summary['p95_after_um']:.3f} µm, max {summary['max_before_um']:.3f} → {summary['max_after_um']:.3f} µm;
 noise σ {summary['sigma_um']:.3f} µm; {summary['n_points']} points, {summary['n_rejected']} rejected (rejected.csv).</p>
 <img src="residual_map.png">
+<h2>Fitted parameters and their standard errors</h2>
+<p>All chosen effects fitted jointly on all points; standard error from the model linearised at the fit,
+s²·(JᵀJ)⁻¹ with s = {se_info.get('sigma_um', float('nan')):.3f} µm (the larger of the noise estimate and the residual RMS),
+assuming independent residuals. ±2 SE is about a 95 % interval.</p>
+<table border=1><tr><th>effect</th><th>parameter</th><th>value</th><th>SE</th><th>±2 SE</th></tr>{prm}</table>
 <h2>Effect ranking (first round, held-out blocks)</h2>
 <table border=1><tr><th>rank</th><th>effect</th><th>RMS after µm</th><th>gain / σ²</th><th>threshold</th><th>significant</th></tr>{rows}</table>
 <h2>Not seen: detection limits next to the effects found</h2>
@@ -492,6 +508,85 @@ def param_error(kind: str, true: dict, fit: dict, geom=None) -> float:
     a = np.array([true[k] for k in keys])
     b = np.array([fit[k] for k in keys])
     return float(np.linalg.norm(a - b) / np.linalg.norm(a))
+
+
+def param_terms(kind: str, true: dict, fit: dict, se: dict, cov: Optional[dict] = None, geom=None) -> dict:
+    """The fitted parameters of one true effect against the truth, in units of their stated standard
+    errors, and the terms of ``param_error`` with the error each could have at 2 SE.
+
+    ``z``: per parameter with a truth, |fit − truth| / se (None when the diagnosis stated no se; the
+    runout's e against the largest flute offset, its force part e_force_um has no truth here).
+    ``terms``: per term of ``param_error`` (same normalisation), its relative error and ``rel_2se`` =
+    2·se / normaliser — above 0.2 the points cannot pin that term to 20 % (for the drift's amplitude
+    vector and the machine-geometry field, the RMS of the error the covariance implies:
+    √trace(Σ)/‖A‖ and √(mean over the points of (n·offset(δg))²)/RMS of the field)."""
+    def z(key, t):
+        s = se.get(key)
+        return abs(fit[key] - t) / s if s is not None and s > 0 else None
+
+    def rel(key, norm):
+        s = se.get(key)
+        return 2 * s / norm if s is not None else None
+
+    zz, terms = {}, []
+    if kind == "runout":
+        eff = _runout_eff(true)
+        zz["e_um"] = z("e_um", eff)
+        terms.append({"param": "e_um", "rel_error": abs(fit["e_um"] - eff) / eff, "rel_2se": rel("e_um", eff)})
+    elif kind == "force_scale":
+        d = abs(true["scale"] - 1.0)
+        zz["scale"] = z("scale", true["scale"])
+        terms.append({"param": "scale", "rel_error": abs(fit["scale"] - true["scale"]) / d, "rel_2se": rel("scale", d)})
+    elif kind == "tool_contour":
+        w = true["width_deg"]
+        for k, norm in (("a_um", abs(true["a_um"])), ("q0_deg", w), ("width_deg", w)):
+            zz[k] = z(k, true[k])
+            terms.append({"param": k, "rel_error": abs(fit[k] - true[k]) / norm, "rel_2se": rel(k, norm)})
+    elif kind == "thermal_drift":
+        keys = ("ax_um", "ay_um", "az_um")
+        a = np.array([true[k] for k in keys])
+        b = np.array([fit[k] for k in keys])
+        for k in keys + ("tau_s",):
+            zz[k] = z(k, true[k])
+        ses = [se.get(k) for k in keys]
+        terms.append({"param": "a_vector", "rel_error": float(np.linalg.norm(a - b) / np.linalg.norm(a)),
+                      "rel_2se": (2 * math.sqrt(sum(x * x for x in ses)) / float(np.linalg.norm(a))
+                                  if all(x is not None for x in ses) else None)})
+        terms.append({"param": "tau_s", "rel_error": abs(fit["tau_s"] - true["tau_s"]) / true["tau_s"],
+                      "rel_2se": rel("tau_s", true["tau_s"])})
+    elif kind == "servo_corner":
+        for k, norm in (("a_um", abs(true["a_um"])), ("lambda_mm", true["lambda_mm"])):
+            zz[k] = z(k, true[k])
+            terms.append({"param": k, "rel_error": abs(fit[k] - true[k]) / norm, "rel_2se": rel(k, norm)})
+    elif kind == "tool_wear":
+        k = "rate_um_per_m"
+        zz[k] = z(k, true[k])
+        terms.append({"param": k, "rel_error": abs(fit[k] - true[k]) / abs(true[k]), "rel_2se": rel(k, abs(true[k]))})
+    elif kind == "machine_geometry":
+        keys = ("sx", "sy", "sz", "exy", "exz", "eyz")
+        for k in keys:
+            zz[k] = z(k, true[k])
+        if geom is not None:
+            tip, n = geom
+            field = lambda g: np.sum(n * _geometry_offsets(g, tip), 1)  # noqa: E731
+            ft = field(true)
+            norm = float(np.sqrt(np.mean(ft ** 2)))
+            r2 = None
+            if cov is not None:
+                idx = [cov["names"].index(f"machine_geometry.{k}") if f"machine_geometry.{k}" in cov["names"] else None
+                       for k in keys]
+                if all(i is not None for i in idx):
+                    S = np.array([[cov["matrix"][i][j] if cov["matrix"][i][j] is not None else np.nan for j in idx]
+                                  for i in idx])
+                    # each coefficient's field per unit, at the points: mean of (N Σ Nᵀ) diagonal
+                    N = np.stack([field({kk: float(kk == k) for kk in keys}) for k in keys], 1)
+                    v = float(np.mean(np.einsum("pi,ij,pj->p", N, S, N)))
+                    r2 = 2 * math.sqrt(v) / norm if np.isfinite(v) and v >= 0 else None
+            terms.append({"param": "field", "rel_error": float(np.sqrt(np.mean((field(fit) - ft) ** 2)) / norm),
+                          "rel_2se": r2})
+    for t in terms:
+        t["pinnable_to_20pct"] = None if t["rel_2se"] is None else bool(t["rel_2se"] <= 0.2)
+    return {"z": zz, "terms": terms}
 
 
 def coefficient_error(true: dict, fit: dict) -> float:
@@ -627,6 +722,15 @@ def blind_cases(vm, passes: pa.Table, errors: Optional[pa.Table], tool: dict, pt
         if len(truth) == 1 and top in truth:
             case["param_error"] = param_error(top, truth[top], res["params"][top], geom)
             case["coefficient_error"] = coefficient_error(truth[top], res["params"][top])
+        # the fitted parameters against the truth in units of their stated standard errors
+        case["params_se"] = res.get("params_se", {})
+        pt = {k: param_terms(k, truth[k], res["params"][k], res["params_se"].get(k, {}), res.get("params_cov"), geom)
+              for k in truth if k in res["params"]}
+        case["param_z"] = {k: v["z"] for k, v in pt.items()}
+        if case.get("param_error", 0.0) > 0.2:
+            # the terms beyond 20 %, with |fit − truth|/se of the parameters behind each
+            case["param_miss"] = [dict(t, z={k: pt[top]["z"].get(k) for k in _TERM_KEYS.get(t["param"], (t["param"],))})
+                                  for t in pt[top]["terms"] if t["rel_error"] > 0.2]
         if len(truth) >= 2:
             case["pair_order_ok"] = res["effects"][:len(true_order)] == true_order
         # a true effect not named: was it within what the diagnosis said it could miss (its
@@ -646,6 +750,7 @@ def blind_cases(vm, passes: pa.Table, errors: Optional[pa.Table], tool: dict, pt
             progress(ci, case)
     singles = [c for c in results if len(c["truth"]) <= 1]
     eff = [c for c in singles if c["truth"]]
+    zs = lambda cs: [z for c in cs for zk in c.get("param_z", {}).values() for z in zk.values()]  # noqa: E731
     none = [c for c in singles if not c["truth"]]
     perr = [c["param_error"] for c in eff if "param_error" in c]
     summary = {
@@ -659,6 +764,11 @@ def blind_cases(vm, passes: pa.Table, errors: Optional[pa.Table], tool: dict, pt
         "median_shrink_where_acting": float(np.median([c["shrink_where_acting"] or 0.0 for c in eff])) if eff else None,
         "param_error": {"median": float(np.median(perr)) if perr else None,
                         "within_20pct": float(np.mean(np.array(perr) <= 0.2)) if perr else None},
+        # the stated standard errors checked: the fraction of fitted parameters (with a truth) whose
+        # truth lies within 2 SE (≈ 95 % if they are honest), and for every case missing the 20 %
+        # line, each term beyond it with |fit − truth|/se and 2·se/|truth| (> 0.2: the points
+        # cannot pin it to 20 %)
+        "param_se": _se_summary(singles, results, zs),
         "pair_order_ok": float(np.mean([c["pair_order_ok"] for c in results if "pair_order_ok" in c]))
         if len(results) > len(singles) else None,
         # the strict figures above count every miss; of the misses, those where a true effect was not
@@ -676,6 +786,34 @@ def blind_cases(vm, passes: pa.Table, errors: Optional[pa.Table], tool: dict, pt
         "cases_detail": results,
     }
     return summary
+
+
+# the parameters behind a vector term of ``param_terms``
+_TERM_KEYS = {"a_vector": ("ax_um", "ay_um", "az_um"), "field": ("sx", "sy", "sz", "exy", "exz", "eyz")}
+
+
+def _se_summary(singles: list, results: list, zs) -> dict:
+    def cover(z, k):
+        have = [x for x in z if x is not None]
+        return float(np.mean(np.array(have) <= k)) if have else None
+    zsg, zpr = zs(singles), zs([c for c in results if len(c["truth"]) >= 2])
+    per = {}
+    for c in singles:
+        for k, zk in c.get("param_z", {}).items():
+            for p, x in zk.items():
+                d = per.setdefault(f"{k}.{p}", [])
+                d.append(x)
+    return {
+        "coverage_2se": cover(zsg, 2.0), "coverage_1se": cover(zsg, 1.0),
+        "n_params": sum(x is not None for x in zsg), "n_without_se": sum(x is None for x in zsg),
+        "coverage_2se_pairs": cover(zpr, 2.0), "n_params_pairs": sum(x is not None for x in zpr),
+        "median_z": float(np.median([x for x in zsg if x is not None])) if any(x is not None for x in zsg) else None,
+        "per_parameter": {k: {"n": len(v), "within_2se": cover(v, 2.0),
+                              "max_z": max((x for x in v if x is not None), default=None)} for k, v in sorted(per.items())},
+        "misses_20pct": [{"case": c["case"], "effect": list(c["truth"])[0], "param_error": c["param_error"],
+                          "noise_um": c["noise_um"], "terms": c["param_miss"]}
+                         for c in singles if "param_miss" in c],
+    }
 
 
 _AMPLITUDES = {"runout": ("e_um",), "tool_contour": ("a_um",), "tool_wear": ("rate_um_per_m",),

@@ -4,6 +4,7 @@ import pyarrow as pa
 SCHEMA = pa.schema([
     pa.field('effect', pa.string()),
     pa.field('params', pa.string()),               # JSON of the fitted parameters (chosen effects)
+    pa.field('params_se', pa.string()),            # JSON: standard error of each (null: not identifiable)
     pa.field('rms_before_um', pa.float64()),
     pa.field('rms_after_um', pa.float64()),        # held-out, this effect alone
     pa.field('explained', pa.float64()),

@@ -24,7 +24,9 @@
    to the chosen effects (large when its signature is nearly collinear with theirs on these points,
    e.g. tool wear ∝ L and a thermal drift along z on a raster whose cut length grows with time),
    and ``ambiguous_with``: per chosen effect, those it explains to a canonical correlation ≥
-   ``AMBIGUOUS_RHO``.
+   ``AMBIGUOUS_RHO``. The reported parameters are the chosen effects fitted jointly on all points
+   to the least-squares optimum (``final_fit``), each with a standard error from the model
+   linearised there (``param_uncertainty``: probe noise only, not a systematic model error).
 4. ``how far``: held-out predictions (each point predicted by the fit without its block, nonlinear
    parameters re-fitted: ``fold_fits``) with the chosen effects added; here as the effects' terms.
    The caller (``pipeline.gap.how_far``) re-runs the prediction itself for the model effects
@@ -490,15 +492,17 @@ def _env_geometry(F, a_max_um: float, lam_max_mm: float) -> dict:
     return out
 
 
-def servo_signature(F, a_um: float, lam_mm: float) -> np.ndarray:
+def servo_signature(F, a_um: float, lam_mm: float, geometry: Optional[dict] = None) -> np.ndarray:
     """The surface a servo lag (a µm, decay λ mm) leaves (µm along n): the envelope of the tooth
     passages around each point near a corner, averaged over the spindle phase (``_env_geometry``),
     and a·``servo_smooth`` where the two agree within ``ENV_TOL_UM``. Without the path geometry
-    (features built elsewhere) the smooth form."""
+    (features built elsewhere) the smooth form. ``geometry``: an ``_env_geometry`` result that
+    covers (a, λ), used instead of the first adequate one of the cache (finite differences must
+    read every (a, λ) with the same passages)."""
     sig = a_um * servo_smooth(F, lam_mm)
     if "_geometry" not in F or a_um == 0:
         return sig
-    g = _env_geometry(F, abs(a_um), lam_mm)
+    g = geometry if geometry is not None else _env_geometry(F, abs(a_um), lam_mm)
     if not g["idx"].size:
         return sig
     R = g["R"]
@@ -892,15 +896,15 @@ def diagnose(F: dict, noise_um: Optional[float] = None, floor_um: float = 0.0) -
     # final fit on all points: parameters and each effect's contribution
     params, contrib = {}, {}
     if chosen:
-        X = np.hstack([e.basis(F, t) for e, t in chosen])
-        beta, *_ = np.linalg.lstsq(X, y, rcond=None)
-        chosen, beta = refine_servo(F, y, np.ones(n, bool), chosen, beta)
+        chosen, beta = final_fit(F, y, chosen)
         k = 0
         for e, t in chosen:
             b = beta[k:k + e.n_lin]
             params[e.name] = e.params(b, t)
             contrib[e.name] = e.basis(F, t) @ b
             k += e.n_lin
+    # how well the data pin each parameter: the final model linearised at the fit
+    unc = param_uncertainty(F, y, chosen, beta if chosen else np.zeros(0), sigma)
     order = sorted(contrib, key=lambda nme: -float(np.sqrt(np.mean(contrib[nme] ** 2))))
     limits = detection_limits(F, chosen, cat, sigma, floor_um)
     after = y - base_pred
@@ -914,6 +918,10 @@ def diagnose(F: dict, noise_um: Optional[float] = None, floor_um: float = 0.0) -
         "effect": order[0] if order else "none",
         "effects": order,
         "params": {k: params[k] for k in order},
+        "params_se": {k: unc["se"][k] for k in order},
+        "params_cov": unc["cov"],
+        "params_se_info": {kk: unc[kk] for kk in ("sigma_um", "noise_sigma_um", "residual_rms_um", "n_points",
+                                                  "n_params", "not_identifiable")},
         "sigma_um": sigma, "floor_um": floor_um,
         "n_points": n,
         "n_blocks": int(blk.max() + 1),
@@ -930,6 +938,247 @@ def diagnose(F: dict, noise_um: Optional[float] = None, floor_um: float = 0.0) -
     }
 
 
+SE_STEP = 1e-3        # central-difference step of a nonlinear parameter: SE_STEP × max(|value|, 1)
+SE_RANK_TOL = 1e-7    # singular value of the column-scaled Jacobian (relative to the largest) below
+                      # which a direction of the parameters is not identifiable on the points
+
+
+def _free_parameters(F, e: "Effect", th, b):
+    """One chosen effect in the linearised model: (internal names, values, linear flags,
+    contribution(v), reported(v) → dict, basis at the fit or None).
+
+    Linear parameters are the effect's amplitudes (their Jacobian columns are its basis columns);
+    nonlinear ones its grid values (τ, q0, width, λ, the runout response's e), differentiated by
+    central differences. The servo lag's fitted form (th = (λ, a)) is the tooth-passage envelope,
+    not linear in a either: both a and λ by central differences, every value read with one
+    passage geometry that covers them."""
+    b = np.asarray(b, float)
+    if e.name == "servo_corner" and len(th) == 2:
+        a, lam = float(b[0]), float(th[0])
+        g = None
+        if "_geometry" in F and a != 0:
+            g = _env_geometry(F, abs(a) + 2 * SE_STEP * max(abs(a), 1.0), lam + 2 * SE_STEP * max(lam, 1.0))
+        return (["servo_corner.a_um", "servo_corner.lambda_mm"], np.array([a, lam]), [False, False],
+                lambda v: servo_signature(F, float(v[0]), float(v[1]), g),
+                lambda v: {"a_um": float(v[0]), "lambda_mm": float(v[1])}, None)
+    nl = e.n_lin
+    th = tuple(float(t) for t in th)
+    keys = list(e.params(b, th))
+    # internal names (for the reasons of a non-identifiable parameter): amplitudes are the first
+    # reported keys, nonlinear values the rest; the runout response's e is not reported
+    names = [f"{e.name}.{keys[i] if i < len(keys) else 'lin' + str(i)}" for i in range(nl)]
+    rest = keys[nl:]
+    names += [f"{e.name}.{'response_at_e_um' if e.name == 'runout' else rest[j] if j < len(rest) else 'th' + str(j)}"
+              for j in range(len(th))]
+    return (names, np.concatenate([b, np.asarray(th, float)]), [True] * nl + [False] * len(th),
+            lambda v: e.basis(F, tuple(float(t) for t in v[nl:])) @ v[:nl],
+            lambda v: e.params(v[:nl], tuple(float(t) for t in v[nl:])), e.basis(F, th))
+
+
+def _linearise(F, chosen: list, beta: np.ndarray):
+    """The combined prediction of ``chosen`` at ``beta`` and its derivative with respect to every free
+    parameter (``_free_parameters``): (prediction, J (n, p), internal names, free values per effect,
+    [(effect, reported keys, G = d reported / d free)])."""
+    n = len(F["q_deg"])
+    cols, names, blocks, values = [], [], [], []
+    pred = np.zeros(n)
+    k = 0
+    for e, th in chosen:
+        b = beta[k:k + e.n_lin]
+        k += e.n_lin
+        nm, v0, is_lin, f, rep, X = _free_parameters(F, e, th, b)
+        pred += f(v0)
+        h = SE_STEP * np.maximum(np.abs(v0), 1.0)
+        J = np.empty((n, len(v0)))
+        keys = list(rep(v0))
+        G = np.zeros((len(keys), len(v0)))
+        for i in range(len(v0)):
+            vp, vm = v0.copy(), v0.copy()
+            vp[i] += h[i]
+            vm[i] -= h[i]
+            J[:, i] = X[:, i] if is_lin[i] else (f(vp) - f(vm)) / (2 * h[i])
+            rp, rm = rep(vp), rep(vm)
+            G[:, i] = [(rp[kk] - rm[kk]) / (2 * h[i]) for kk in keys]
+        cols.append(J)
+        names += nm
+        values.append(v0)
+        blocks.append((e.name, keys, G))
+    J = np.hstack(cols) if cols else np.zeros((n, 0))
+    return pred, J, names, values, blocks
+
+
+def _predict(F, chosen: list, beta: np.ndarray) -> np.ndarray:
+    """Σ of the chosen effects' contributions (basis × amplitudes)."""
+    out, k = np.zeros(len(F["q_deg"])), 0
+    for e, th in chosen:
+        out += e.basis(F, th) @ beta[k:k + e.n_lin]
+        k += e.n_lin
+    return out
+
+
+def _with_free(e: "Effect", th, v: np.ndarray):
+    """(grid value, amplitudes) of effect ``e`` from its free parameter values (``_free_parameters``)."""
+    if e.name == "servo_corner" and len(th) == 2:
+        return (float(v[1]), float(v[0])), np.array([v[0]], float)
+    return tuple(float(t) for t in v[e.n_lin:]), np.asarray(v[:e.n_lin], float)
+
+
+def _free_bounds(e: "Effect", th, v0: np.ndarray):
+    """How far ``polish_fit`` may move an effect's nonlinear values from the selection's: within a
+    factor 2 (positive values: τ, λ, width, the runout response's e, the servo lag a with its sign),
+    the contour's centre q0 within ± its width."""
+    lo, hi = np.full(len(v0), -np.inf), np.full(len(v0), np.inf)
+    nonlin = range(len(v0)) if (e.name == "servo_corner" and len(th) == 2) else range(e.n_lin, len(v0))
+    for i in nonlin:
+        if e.name == "tool_contour" and i == e.n_lin:                 # q0: any sign
+            w = abs(float(v0[i + 1]))
+            lo[i], hi[i] = v0[i] - w, v0[i] + w
+        else:
+            lo[i], hi[i] = sorted((0.5 * v0[i], 2.0 * v0[i]))
+    return lo, hi
+
+
+def polish_fit(F, y: np.ndarray, chosen: list, beta: np.ndarray, max_iter: int = 30):
+    """All parameters of the chosen effects refined jointly by least squares (Levenberg–Marquardt on
+    the linearised model of ``_linearise``), from the selection's fit.
+
+    The selection's nonlinear values come from grids refined once between neighbours (τ in steps
+    of ~6 %, q0 of 0.5°, width of ~0.3–0.6°): at a strong signal that step is as large as the noise's
+    own spread of the value, so the reported value would sit on a grid point and its standard error
+    (``param_uncertainty``, which assumes the least-squares optimum) would not describe it. The
+    nonlinear values stay within ``_free_bounds`` of the selection's; a step is taken only when it
+    lowers the sum of squares. Returns (chosen, beta) in the same layout."""
+    if not chosen:
+        return chosen, beta
+    chosen, beta = list(chosen), np.asarray(beta, float).copy()
+    pred, J, _, values, _ = _linearise(F, chosen, beta)
+    bounds = [_free_bounds(e, th, v) for (e, th), v in zip(chosen, values)]
+    lo = np.concatenate([b[0] for b in bounds])
+    hi = np.concatenate([b[1] for b in bounds])
+    sizes = [len(v) for v in values]
+    v = np.concatenate(values)
+    r = y - pred
+    sse = float(r @ r)
+    lam = 1e-4
+
+    def unpack(vv):
+        ch, bb, k = [], [], 0
+        for (e, th), m in zip(chosen, sizes):
+            t2, b2 = _with_free(e, th, vv[k:k + m])
+            ch.append((e, t2))
+            bb.append(b2)
+            k += m
+        return ch, np.concatenate(bb)
+
+    for _ in range(max_iter):
+        A, g = J.T @ J, J.T @ r
+        D = np.where(np.diag(A) > 0, np.diag(A), 1.0)
+        step = None
+        while lam < 1e10:
+            try:
+                delta = np.linalg.solve(A + lam * np.diag(D), g)
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            vn = v + delta
+            if np.all(np.isfinite(vn)) and np.all(vn >= lo) and np.all(vn <= hi):
+                ch, bb = unpack(vn)
+                rn = y - _predict(F, ch, bb)
+                sn = float(rn @ rn)
+                if sn < sse:
+                    step = (vn, ch, bb, rn, sn)
+                    lam = max(lam / 10, 1e-9)
+                    break
+            lam *= 10
+        if step is None:
+            break
+        vn, chosen, beta, r, sn = step
+        done = sse - sn <= 1e-12 * sse
+        v, sse = vn, sn
+        if done:
+            break
+        _, J, _, _, _ = _linearise(F, chosen, beta)
+    return chosen, beta
+
+
+def param_uncertainty(F, y: np.ndarray, chosen: list, beta: np.ndarray, sigma: float) -> dict:
+    """Standard errors of every reported parameter of the final model (all chosen effects jointly,
+    on all points), from the model linearised at the fit.
+
+    J: the derivative of the combined prediction Σ_e contribution_e with respect to every free
+    parameter (``_free_parameters``: amplitudes → basis columns; nonlinear parameters → central
+    differences of the basis, step ``SE_STEP``). cov = s²·(JᵀJ)⁻¹ with s = max(σ, residual RMS
+    √(SSE/(n − p))), propagated to the reported form (force scale = 1 + b, …) by the Jacobian of the
+    reported parameters, G·cov·Gᵀ. JᵀJ is inverted through the SVD of J with unit-norm columns:
+    directions whose singular value is below ``SE_RANK_TOL`` of the largest are not identifiable, and a
+    reported parameter that depends on one gets se None with the reason (the parameters it cannot
+    be told from); the others are read from the pseudo-inverse. It assumes independent residuals
+    and the linearisation: a residual the model does not explain (the prediction's own floor)
+    enters through s only.
+
+    Returns {"se": {effect: {key: se | None}}, "cov": {"names", "matrix"}, "not_identifiable":
+    {effect.key: reason}, "sigma_um": s, "noise_sigma_um", "residual_rms_um", "n_points", "n_params"}.
+    """
+    n = len(y)
+    pred, J, names, _, blocks = _linearise(F, chosen, beta)
+    se = {e.name: {} for e, _ in chosen}
+    rep_names = []
+    p = len(names)
+    out = {"se": se, "cov": {"names": [], "matrix": []}, "not_identifiable": {}, "noise_sigma_um": float(sigma),
+           "n_points": int(n), "n_params": int(p)}
+    if not p:
+        out.update(sigma_um=float(sigma), residual_rms_um=_rms(y))
+        return out
+    Gf = np.zeros((sum(len(kk) for _, kk, _ in blocks), p))
+    r = c = 0
+    for name, keys, G in blocks:
+        Gf[r:r + len(keys), c:c + G.shape[1]] = G
+        rep_names += [f"{name}.{kk}" for kk in keys]
+        r += len(keys)
+        c += G.shape[1]
+    resid = y - pred
+    rms_dof = float(np.sqrt(resid @ resid / max(n - p, 1)))
+    s = max(float(sigma), rms_dof)
+    out.update(sigma_um=s, residual_rms_um=rms_dof)
+    reason = {}
+    if n <= p or not np.all(np.isfinite(J)):
+        why = (f"{n} points for {p} parameters" if n <= p else "the model's derivative is not finite at the fit")
+        for nm in rep_names:
+            reason[nm] = why
+        cov = np.full((len(rep_names), len(rep_names)), np.nan)
+    else:
+        cn = np.linalg.norm(J, axis=0)
+        cn = np.where(cn > 0, cn, 1.0)
+        _, S, Vt = np.linalg.svd(J / cn, full_matrices=False)
+        keep = S > S[0] * SE_RANK_TOL if S[0] > 0 else np.zeros(len(S), bool)
+        Vk = Vt[keep].T / S[keep]
+        cov_v = (Vk @ Vk.T) / np.outer(cn, cn) * s * s
+        cov = Gf @ cov_v @ Gf.T
+        N = Vt[~keep].T                                   # null directions, in column-scaled units
+        if N.size:
+            Gw = Gf / cn
+            for j, nm in enumerate(rep_names):
+                g = Gw[j]
+                if np.linalg.norm(g @ N) > 1e-6 * max(np.linalg.norm(g), 1e-300):
+                    w = np.abs(N @ (N.T @ g))
+                    with_ = [names[i] for i in np.argsort(-w) if w[i] > 0.1 * w.max() and names[i] != nm][:4]
+                    reason[nm] = ("not identifiable on these points: a combination of it and "
+                                  + (", ".join(with_) if with_ else "nothing else")
+                                  + f" leaves the prediction unchanged (singular value {S[~keep].max() / S[0]:.1e} "
+                                    "of the column-scaled Jacobian)")
+    bad = np.array([nm in reason for nm in rep_names])
+    cov[bad, :] = np.nan
+    cov[:, bad] = np.nan
+    for j, nm in enumerate(rep_names):
+        eff, key = nm.split(".", 1)
+        v = cov[j, j]
+        se[eff][key] = float(math.sqrt(v)) if np.isfinite(v) and v >= 0 else None
+    out["not_identifiable"] = reason
+    out["cov"] = {"names": rep_names,
+                  "matrix": [[float(x) if np.isfinite(x) else None for x in row] for row in cov]}
+    return out
+
+
 AMBIGUOUS_RHO = 0.95   # reported as ambiguous: the chosen effect's signatures explain ≥ 90 % of the other's
 
 
@@ -939,6 +1188,18 @@ def _orth(X: np.ndarray) -> np.ndarray:
         return X
     U, sv, _ = np.linalg.svd(X, full_matrices=False)
     return U[:, sv > max(sv[0], 1e-300) * 1e-9] if sv.size and sv[0] > 0 else U[:, :0]
+
+
+def final_fit(F, y: np.ndarray, chosen: list):
+    """The reported fit of the chosen effects on all points: amplitudes by least squares at the
+    selection's nonlinear values, the servo lag re-fitted with the tooth-passage envelope
+    (``refine_servo``), then every parameter jointly to the least-squares optimum (``polish_fit``).
+    Returns (chosen, beta)."""
+    n = len(y)
+    X = np.hstack([e.basis(F, t) for e, t in chosen])
+    beta, *_ = np.linalg.lstsq(X, y, rcond=None)
+    chosen, beta = refine_servo(F, y, np.ones(n, bool), chosen, beta)
+    return polish_fit(F, y, chosen, beta)
 
 
 def detection_limits(F, chosen: list, cat: list, sigma: float, floor_um: float = 0.0) -> dict:
@@ -1064,6 +1325,7 @@ def gap_effects_table(res: dict) -> pa.Table:
     return pa.table({
         "effect": pa.array([r["effect"] for r in rows], pa.string()),
         "params": pa.array([json.dumps(chosen.get(r["effect"], {})) for r in rows], pa.string()),
+        "params_se": pa.array([json.dumps(res.get("params_se", {}).get(r["effect"], {})) for r in rows], pa.string()),
         "rms_before_um": [r["rms_before_um"] for r in rows],
         "rms_after_um": [r["rms_after_um"] for r in rows],
         "explained": [1 - r["rms_after_um"] / r["rms_before_um"] if r["rms_before_um"] > 0 else 0.0 for r in rows],

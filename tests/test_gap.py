@@ -351,6 +351,73 @@ def test_wear_inside_a_drift_is_reported_as_ambiguous(rigid, sample):
     assert set(high["effects"]) == {"thermal_drift", "tool_wear"}
 
 
+# ------------------------------------------------------------------------------------ standard errors
+@pytest.mark.parametrize("kind,truth,noise,draws", [
+    ("thermal_drift", {"ax_um": 3.0, "ay_um": -4.0, "az_um": -8.0, "tau_frac": 0.4}, 0.7, 200),
+    ("tool_contour", {"a_um": 5.0, "q0_deg": 25.0, "width_deg": 8.0}, 0.5, 200),
+    ("servo_corner", {"a_um": 15.0, "lambda_mm": 0.6}, 0.7, 150),
+])
+def test_stated_standard_errors_match_the_spread_of_repeated_fits(rigid, sample, kind, truth, noise, draws):
+    """Monte Carlo: one noise-free signature of the virtual machine on the sample plan, ``draws``
+    Gaussian noise draws, each fitted as the diagnosis fits its final model (the selection's grid
+    fit, then ``final_fit``). The empirical standard deviation of every parameter over the draws
+    — this test's own reference, from repeated fitting — against the median standard error the
+    diagnosis states (``param_uncertainty``): within 25 % (the reference's own sampling error is
+    1/√(2·draws) ≈ 5–6 %). Linear amplitudes (the drift's A, the contour's a) and nonlinear values
+    (τ, q0, width, the servo lag's a and λ, both read from the tooth-passage envelope)."""
+    from pipeline.gap import _meas_table
+    from stages.gap import associate, catalogue, final_fit, fit_joint, noise_sigma, param_uncertainty
+    passes, pts, nrm = sample
+    truth = dict(truth)
+    if kind == "thermal_drift":
+        truth["tau_s"] = truth.pop("tau_frac") * float(rigid.path.t1.max())
+    sig = _diff(rigid, sample, {kind: truth})
+    F, _ = associate(_meas_table(np.arange(len(pts)), pts, nrm, sig), passes, None, TOOL)
+    eff = {e.name: e for e in catalogue(F)}[kind]
+    allp = np.ones(len(F["q_deg"]), bool)
+    rng = np.random.default_rng(1)
+    fits, ses = [], []
+    for _ in range(draws):
+        y = F["measured_um"] + rng.normal(0.0, noise, len(allp))
+        _, th, _ = fit_joint(F, y, allp, [], eff)
+        chosen, beta = final_fit(F, y, [(eff, th)])
+        fits.append(eff.params(beta, chosen[0][1]))
+        ses.append(param_uncertainty(F, y, chosen, beta, noise_sigma(F, y))["se"][kind])
+    for k in truth:
+        v = np.array([f[k] for f in fits])
+        se = float(np.median([s[k] for s in ses]))
+        assert np.std(v, ddof=1) == pytest.approx(se, rel=0.25), (k, np.std(v, ddof=1), se)
+        assert abs(v.mean() - truth[k]) <= 0.5 * se, (k, v.mean(), truth[k], se)
+
+
+def test_standard_errors_of_parameters_the_points_cannot_tell_apart_are_null_with_a_reason():
+    """Degenerate cases: a machine geometry on points all at z = 0 (its z terms sz, exz, eyz are
+    zero on them) and, separately, a wear whose signature L equals the predicted deflection (force
+    scale): those parameters get no standard error and a reason; the others stay finite and agree
+    with this test's own (XᵀX)⁻¹ on the identifiable columns."""
+    from stages.gap import Effect, param_uncertainty
+    g = np.random.default_rng(2)
+    n = 300
+    nrm = g.normal(size=(n, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    F = {"q_deg": np.zeros(n), "nx": nrm[:, 0], "ny": nrm[:, 1], "nz": nrm[:, 2], "tip_x_mm": g.uniform(-5, 5, n),
+         "tip_y_mm": g.uniform(-5, 5, n), "tip_z_mm": np.zeros(n), "cut_len_mm": g.uniform(0, 1000, n)}
+    F["pred_deflection_um"] = F["cut_len_mm"] * 1e-3
+    geo = Effect("machine_geometry", [()], 6)
+    y = geo.basis(F, ()) @ np.array([1.0, -0.5, 0.0, 0.3, 0.0, 0.0]) + g.normal(0, 0.5, n)
+    u = param_uncertainty(F, y, [(geo, ())], np.array([1.0, -0.5, 0.0, 0.3, 0.0, 0.0]), 0.5)
+    se = u["se"]["machine_geometry"]
+    assert se["sz"] is None and se["exz"] is None and se["eyz"] is None
+    assert all("not identifiable" in u["not_identifiable"][f"machine_geometry.{k}"] for k in ("sz", "exz", "eyz"))
+    X = geo.basis(F, ())[:, [0, 1, 3]]
+    ref = u["sigma_um"] * np.sqrt(np.diag(np.linalg.inv(X.T @ X)))
+    assert [se["sx"], se["sy"], se["exy"]] == pytest.approx(ref, rel=1e-6)
+    wear, fs = Effect("tool_wear", [()], 1), Effect("force_scale", [()], 1)
+    u = param_uncertainty(F, y, [(wear, ()), (fs, ())], np.array([1.0, 0.0]), 0.5)
+    assert u["se"] == {"tool_wear": {"rate_um_per_m": None}, "force_scale": {"scale": None}}
+    assert "force_scale.scale" in u["not_identifiable"]["tool_wear.rate_um_per_m"]
+
+
 def test_force_scale_scales_the_deflection_part(sample):
     from stages.gap_geometry import nearest_pass
     from stages.virtual_machine import VirtualMachine
@@ -476,6 +543,13 @@ def test_small_blind_check_names_effects_and_none(rigid, sample):
     # (README), not asserted on two cases
     pairs = [c for c in s["cases_detail"] if len(c["truth"]) == 2]
     assert len(pairs) == 2 and all(set(c["truth"]) <= set(c["found"]) for c in pairs)
+    # every found true effect's parameters against the truth in stated standard errors
+    ps = s["param_se"]
+    assert ps["n_params"] >= 12 and ps["coverage_2se"] is not None
+    for c in s["cases_detail"]:
+        assert set(c["param_z"]) == set(c["truth"]) & set(c["found"])
+        if c.get("param_error", 0) > 0.2:
+            assert c["param_miss"] and all(t["rel_error"] > 0.2 for t in c["param_miss"])
     # a true effect not named is listed with the detection limit the diagnosis stated for it
     assert set(s["misses_within_stated_limit"]) == {"single", "pair"}
     for c in s["cases_detail"]:
@@ -606,9 +680,15 @@ def test_cli_run_simulate_diagnose_end_to_end_on_two_rows(tmp_path):
     assert "residual_map.png" in (g / "index.html").read_text() and (g / "residual_map.png").stat().st_size > 10_000
     assert "runout" not in s["detection_limits"] and s["detection_limits"]["tool_wear"]["hidden_up_to_um"] > 0
     assert "Not seen" in (g / "index.html").read_text()
+    # every fitted parameter has a stated standard error (summary, gap_effects, report)
+    se = s["params_se"]["runout"]
+    assert set(se) == set(s["params"]["runout"]) and 0 < se["e_um"] < 1.0
+    assert s["params_se_info"]["sigma_um"] >= s["sigma_um"] and not s["params_se_info"]["not_identifiable"]
+    assert "standard errors" in (g / "index.html").read_text()
     pts = pq.read_table(tmp_path / "out" / "tables" / "gap_points" / "m.parquet")
     eff = pq.read_table(tmp_path / "out" / "tables" / "gap_effects" / "m.parquet")
     assert pts.num_rows == s["n_points"] and eff.column("effect").to_pylist()[0] == "runout"
+    assert json.loads(eff.column("params_se").to_pylist()[0]) == pytest.approx(se)
     bad = (tmp_path / "m.csv").read_text().splitlines()
     (tmp_path / "dup.csv").write_text("\n".join(bad + [bad[1]]) + "\n")
     r = CliRunner().invoke(main, ["diagnose", str(tmp_path / "wf.yaml"), "--measurements", str(tmp_path / "dup.csv")])
