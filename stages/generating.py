@@ -55,7 +55,7 @@ from stages.cut_filter import (PASSES_PER_DRAW, coarse_tolerance, fine_tolerance
 from stages.render import Scene, Snapshot, View
 
 NAME = "generating"
-VERSION = "6"
+VERSION = "7"
 INPUTS = ("passes", "stock", "cut_filter", "angle_prune")
 OUTPUTS = ("generating", "engagement")
 PARAMS = ("tool", "render")
@@ -73,6 +73,9 @@ _redo_when_lost = True     # claim 6 also when nothing survives from below (test
 # 0.5 µm of a 4× finer grid (analytic engagement, bench/closed_loop_vm.py's set-up).
 N_PHI = 360
 DZ_PER_RADIUS = 1.0 / 180
+# the own path's trailing passes left out of a prediction point's material snapshot: within a tool
+# radius behind it, contiguous, turning by at most this in all (see :func:`snapshot_from`)
+TRAIL_TURN_DEG = 15.0
 
 
 def unpack_engagement(row):
@@ -100,6 +103,61 @@ def feed_per_tooth(pg: geo.PassGeometry, flutes: int, fallback_mm: float):
     rpm = np.where(np.isfinite(pg.spindle_rpm), pg.spindle_rpm, 0.0)
     f = np.where(rpm > 0, pg.feed_mm_min / np.maximum(rpm, 1e-9) / max(int(flutes), 1), 0.0)
     return np.where((f > 0) & np.isfinite(f), f, fallback_mm)
+
+
+def snapshot_from(pg, predict_idx, s_tip, reach_mm, turn_deg=TRAIL_TURN_DEG):
+    """First pass of each prediction point's own trailing path that its material snapshot leaves out.
+
+    The engagement is the envelope in the material before the cut (claim 5): the stock less the
+    sweeps of the earlier passes. The tool's own path straight behind it never reaches into its
+    front half (a ball δ behind lies √(R² + δ²) or more from every front point), but in the height
+    field its end cap lies only about δ·tanθ·cosφ above the front near the tip: a point δ into a
+    short chord (CAM's chords at fillets and corners are a few µm to a few tenths of a mm; the
+    sample boss foot has 25 µm ones) lost its engagement there within the render tolerance, and a
+    pass the virtual machine cuts at 68 N was predicted without force. So the passes of the own path
+    that end within ``reach_mm`` behind the point, while the path is contiguous (no rapid, no gap)
+    and turns by at most ``turn_deg`` in all from them to the point's pass, are drawn after the
+    snapshot: the front half meets the material as the cut does, whatever the chord length. A
+    sharper turn keeps them (a corner's sweep does reach into the front half).
+
+    Parameters
+    ----------
+    pg : PassGeometry
+    predict_idx : (m,) int
+        Pass index of each prediction point, ascending.
+    s_tip : (m,) float
+        Path position of each prediction point (mm).
+    reach_mm : float
+        How far behind the point the own path is left out (a tool radius: a ball that far behind
+        lies outside the footprint of the front half).
+
+    Returns
+    -------
+    (m,) int
+        Pass index j ≤ predict_idx: passes j … predict_idx − 1 are not in the snapshot.
+        Non-decreasing with ``predict_idx`` (the scan draws passes in order).
+    """
+    predict_idx = np.asarray(predict_idx, np.int64)
+    n = len(pg.pass_id)
+    if n == 0 or len(predict_idx) == 0:
+        return predict_idx.copy()
+    d = pg.p1 - pg.p0
+    L = np.linalg.norm(d, axis=1)
+    u = d / np.maximum(L, 1e-12)[:, None]
+    turn = np.zeros(n)
+    brk = np.zeros(n, bool)
+    brk[0] = True
+    if n > 1:
+        ang = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", u[:-1], u[1:]), -1.0, 1.0)))
+        turn[1:] = np.where((L[:-1] > 1e-9) & (L[1:] > 1e-9), ang, 0.0)
+        brk[1:] = ((pg.motion[:-1] == 0) | (pg.motion[1:] == 0)
+                   | (np.linalg.norm(pg.p0[1:] - pg.p1[:-1], axis=1) > 1e-6))
+    chain_start = np.maximum.accumulate(np.where(brk, np.arange(n), 0))
+    C = np.cumsum(turn)                          # turning from pass j to pass i: C[i] - C[j]
+    j_turn = np.searchsorted(C, C[predict_idx] - turn_deg - 1e-9, side="left")
+    j_reach = np.searchsorted(pg.s0 + L, np.asarray(s_tip, float) - reach_mm, side="right")
+    j = np.maximum(np.maximum(chain_start[predict_idx], j_turn), j_reach)
+    return np.minimum(j, predict_idx)
 
 
 def _segments_around(pg, cutting, s_p, f, win_lo, win_hi, bounds, gap):
@@ -280,8 +338,9 @@ def generating(pg, shape, wp, renderer, px_per_mm, predict_idx, pred_tips, flute
     u = dirs / np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-12)
     half = R + margin
     tops = np.zeros(m)                            # highest material above each tip, from below
+    snap = snapshot_from(pg, predict_idx, s_p, R)
     final, tile_of = _scan_program(pg, shape, wp, renderer, px_per_mm, mesh, predict_idx, pred_tips,
-                                   f, u, zlo, zhi, half, eng, dz, n_phi, tol, fd, tops)
+                                   f, u, zlo, zhi, half, eng, dz, n_phi, tol, fd, tops, snap)
     path_lo, path_hi = pg.s0, pg.s0 + pg.length
     redo = []                                     # (slot, estimated q, phi)
     from stages.render import make_scene
@@ -300,7 +359,7 @@ def generating(pg, shape, wp, renderer, px_per_mm, predict_idx, pred_tips, flute
                      pred_tips, s_p, f, fd, gap, u)
     steep = [k for k, _, _ in redo if gen["view"][k] == "normal"]
     _engagement_along_normal(eng, steep, gen, pg, shape, wp, renderer, px_per_mm, cutting, bounds, mesh,
-                             pred_tips, pg.s0[predict_idx], fd, tops, dz, n_phi, tol)
+                             pred_tips, pg.s0[snap], fd, tops, dz, n_phi, tol)
     return gen, eng
 
 
@@ -362,10 +421,11 @@ def _strip_estimate(shape, E, dz, n_phi, u, feed_deg, width=0.1):
 
 
 def _scan_program(pg, shape, wp, renderer, px_per_mm, mesh, predict_idx, tips, f, u, zlo, zhi, half,
-                  eng, dz, n_phi, tol, fd, tops):
+                  eng, dz, n_phi, tol, fd, tops, snap):
     """One ordered scan of the program per tile: the final surface (which pass leaves which
     pixel) and, at each prediction point, a snapshot of the material left before its pass (stock
-    and every earlier pass): the claim-5 cutting region's top.
+    and every earlier pass but the own path's trailing passes from ``snap``, see
+    :func:`snapshot_from`): the claim-5 cutting region's top.
 
     Each snapshot becomes the prediction's engagement map (``eng[k]``) as soon as it is taken.
     Returns (final images per tile, tile index per prediction).
@@ -395,8 +455,7 @@ def _scan_program(pg, shape, wp, renderer, px_per_mm, mesh, predict_idx, tips, f
         def batches(inside=inside, mine=mine, rects=rects):
             done = 0                                           # passes of `inside` drawn so far
             for k, rect in zip(mine, rects):
-                i = predict_idx[k]
-                upto = int(np.searchsorted(inside, i))
+                upto = int(np.searchsorted(inside, snap[k]))
                 for a in range(done, upto, PASSES_PER_DRAW):
                     j = inside[a:min(upto, a + PASSES_PER_DRAW)]
                     yield geo.ordered_sweep_scene(mesh, pg.p0[j], pg.p1[j], j)
@@ -534,7 +593,7 @@ def _engagement_along_normal(eng, ks, gen, pg, shape, wp, renderer, px_per_mm, c
     pixel, so most of the side engagement is lost or invented. Along the normal that layer is a
     depth. Looking from inside the material along the normal, the material before the pass ends,
     on each ray, where the ray leaves the stock (W) or enters the sweep of an earlier pass (the
-    T1 layers, cut at the pass's start), whichever is nearer; an envelope point is engaged when
+    T1 layers, cut where its snapshot starts: :func:`snapshot_from`), whichever is nearer; an envelope point is engaged when
     it lies before that depth.
     The window covers every envelope point up to the stock top that lies within the view's
     depth range around the surface; a ray that never leaves the stock within it (above the
@@ -562,7 +621,7 @@ def _engagement_along_normal(eng, ks, gen, pg, shape, wp, renderer, px_per_mm, c
             views.append(View(tuple(ctr), tuple(nrm), tuple(up), x1 - x0, y1 - y0, px_per_mm, near, far))
             grids.append(P)
         n = len(views)
-        zero = np.zeros(len(kb))                      # T1 = everything before the pass starts
+        zero = np.zeros(len(kb))                      # T1 = everything before s_start (snapshot_from)
         scene = _layer_scene(views, pg, cutting, s_start[kb], zero, bounds, wp, mesh, tips[kb], fd[kb],
                              None, zero, material_only=True)
         imgs = renderer.render(views * N_LAYERS, scene)

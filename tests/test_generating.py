@@ -195,3 +195,126 @@ def test_engagement_on_a_vertical_wall_matches_closed_form():
     assert np.all((n_eng >= inner - 1) & (n_eng <= outer + 1))
     assert not E[side][:, ~closed_form(-0.02)].any()              # nothing away from the layer
     assert not E[z >= H + 0.05].any()
+
+
+def _chain(points, motion=None):
+    """PassGeometry of the polyline ``points`` (tips), one pass per segment."""
+    P = np.asarray(points, float)
+    n = len(P) - 1
+    mot = np.ones(n, np.int8) if motion is None else np.asarray(motion, np.int8)
+    return geo.PassGeometry("p", np.arange(n), mot, P[:-1].copy(), P[1:].copy(), np.full(n, 1000.0),
+                            np.full(n, 1000.0))
+
+
+def test_snapshot_leaves_out_the_straight_trailing_path_only():
+    """Which passes of the own path a prediction point's snapshot leaves out, from the construction.
+
+    Path: a rapid to (0,0,0); chords along +x of 10, 0.2, 0.2, 0.01 mm (x = 10.41); a 90° turn to +y
+    (0.01 mm); 8° more (0.3 mm); then a gap of 1 µm before the last chord. Reach 5 mm, turn ≤ 15°.
+    """
+    c8 = (np.cos(np.radians(98.0)), np.sin(np.radians(98.0)))
+    y1 = 0.01
+    pts = [(-30, 0, 5), (0, 0, 0), (10, 0, 0), (10.2, 0, 0), (10.4, 0, 0), (10.41, 0, 0), (10.41, y1, 0),
+           (10.41 + 0.3 * c8[0], y1 + 0.3 * c8[1], 0)]
+    pg = _chain(pts, motion=[0, 1, 1, 1, 1, 1, 1])
+    # a last chord after a 1 µm gap
+    pg = geo.PassGeometry("p", np.arange(8), np.r_[pg.motion, 1].astype(np.int8),
+                          np.vstack([pg.p0, pg.p1[-1] + [0.001, 0, 0]]),
+                          np.vstack([pg.p1, pg.p1[-1] + [0.001 + 0.3 * c8[0], 0.3 * c8[1], 0]]),
+                          np.full(8, 1000.0), np.full(8, 1000.0))
+    idx = np.array([1, 2, 3, 4, 5, 6, 7])
+    s_tip = pg.s0[idx] + 0.5 * pg.length[idx]            # mid-chord
+    got = generating.snapshot_from(pg, idx, s_tip, 5.0)
+    # pass 1 (10 mm from the rapid): the rapid is no cut → nothing left out
+    # pass 2: pass 1 ends 0.1 mm behind → left out; pass 3: 1 and 2; pass 4: 1, 2, 3 (pass 1 ends
+    # 0.405 mm behind); pass 5 (the 90° turn): nothing; pass 6 (8° more): pass 5; pass 7: after a gap
+    assert got.tolist() == [1, 1, 1, 1, 5, 5, 7]
+    # reach: pass 1 ends 5.2 mm behind a point 5.2 mm into … a long chord, left in
+    far = generating.snapshot_from(pg, np.array([3]), np.array([pg.s0[3] + 0.1]), 0.2)
+    assert far.tolist() == [3 - 1]                         # pass 2 ends 0.1 mm behind; pass 1 0.3 mm
+    assert generating.snapshot_from(pg, np.array([4]), np.array([pg.s0[4]]), 5.0, turn_deg=0.0).tolist() == [1]
+
+
+@pytest.mark.parametrize("chord_mm", [0.01, 0.2])
+def test_engagement_of_a_short_chord_is_that_of_the_cut(chord_mm):
+    """A floor finishing cut 0.05 mm deep along +x, split by CAM into a long chord, a short one
+    (10 µm or 0.2 mm) and a long one: the short chord cuts as the long ones do.
+
+    In the material it meets (the fresh box less the sweeps behind it) the front half of the ball
+    is in the material below the top face, whatever the chord length (a ball δ behind lies
+    √(R² + δ²) or more from every front point): the engaged grid cells with cos φ > 0 are those
+    below depth a, and the forces (front only: h = fz·cos φ·sin κ) equal those of the long chord
+    after it. Before ``snapshot_from`` the 10 µm chord's snapshot ended 5 µm behind its point and
+    its engagement was lost within the render tolerance (no force).
+    """
+    from stages import cutting
+    a, R, f = 0.05, 5.0, 0.05
+    tool = {"type": "ball", "diameter_mm": 2 * R, "flutes": 2, "stickout_mm": 30.0}
+    coeffs = {"ktc": 2000.0, "krc": 700.0, "kac": 300.0, "kte": 20.0, "kre": 15.0, "kae": 5.0}
+    xs = [-20.0, 0.0, chord_mm, 20.0]
+    n = 3
+    passes = pa.table({
+        "program_id": ["floor"] * n, "pass_id": pa.array(range(n), pa.int32()),
+        "block_no": pa.array(range(n), pa.int32()), "line_no": pa.array(range(1, n + 1), pa.int32()),
+        "motion": pa.array([1] * n, pa.int8()),
+        "x0_mm": xs[:-1], "y0_mm": [0.0] * n, "z0_mm": [-a] * n, "x1_mm": xs[1:], "y1_mm": [0.0] * n,
+        "z1_mm": [-a] * n, "feed_mm_min": [f * 2 * 1000.0] * n, "spindle_rpm": [1000.0] * n,
+        "tool": pa.array([1] * n, pa.int32()), "t_start_s": [0.0, 1.0, 2.0], "t_end_s": [1.0, 2.0, 3.0]})
+    stock = {"box": [-30, -30, -10, 30, 30, 0]}
+    params = {"tool": tool, "render": {"backend": "auto", "px_per_mm": 20}}
+    cf = pa.table({"pass_id": pa.array([1, 2], pa.int32()), "is_cutting": [True, True],
+                   "pred_x_mm": [chord_mm / 2, 10.0], "pred_y_mm": [0.0, 0.0], "pred_z_mm": [-a, -a]})
+    ap = pa.table({"pass_id": pa.array([1, 2], pa.int32()), "predict": [True, True]})
+    out = generating.run({"passes": passes, "stock": stock, "cut_filter": cf, "angle_prune": ap}, params)
+    rows = {r["pass_id"]: r for r in out["engagement"].to_pylist()}
+    tol = generating.fine_tolerance(20)
+    grids = {}
+    for pid in (1, 2):
+        E, z, phi = unpack_engagement(rows[pid])
+        front = np.cos(np.radians(phi)) > 0.05
+        # the front below the top face (less the in-material margin and one level) is engaged
+        assert E[np.ix_(z < a - tol - rows[pid]["dz_mm"], front)].all(), pid
+        assert not E[z > a].any()
+        grids[pid] = E
+    k = min(g.shape[0] for g in grids.values())
+    rot = cutting.rotation_grid_deg(64)
+    F = cutting.cutting_forces(np.stack([grids[1][:k], grids[2][:k]]), rows[1]["dz_mm"], f, tool, coeffs, rot)
+    print(f"\nchord {chord_mm} mm: mean force {np.round(F[0].mean(0), 2)} N, long chord {np.round(F[1].mean(0), 2)} N")
+    assert np.abs(F[1]).max() > 1.0
+    assert np.allclose(F[0], F[1], atol=0.01 * np.abs(F[1]).max())
+
+
+def test_a_corner_behind_stays_in_the_snapshot():
+    """A 90° corner right behind the point: the sweep along +y up to the corner does reach into the
+    front half of the tool now going +x (the front points with y < 0 lie in it), so it stays in the
+    snapshot and those points are not engaged (left out, as a straight trailing path is, they
+    would be). The front points at y > 0 are outside that sweep by a hair (5 µm into the new
+    direction) and the height field loses them within the render tolerance, as it did for any
+    short chord before ``snapshot_from``: at a sharp corner that remains."""
+    a, R, f = 0.05, 5.0, 0.05
+    tool = {"type": "ball", "diameter_mm": 2 * R, "flutes": 2, "stickout_mm": 30.0}
+    n = 2
+    passes = pa.table({
+        "program_id": ["corner"] * n, "pass_id": pa.array(range(n), pa.int32()),
+        "block_no": pa.array(range(n), pa.int32()), "line_no": pa.array(range(1, n + 1), pa.int32()),
+        "motion": pa.array([1] * n, pa.int8()),
+        "x0_mm": [0.0, 0.0], "y0_mm": [-20.0, 0.0], "z0_mm": [-a] * n, "x1_mm": [0.0, 0.01],
+        "y1_mm": [0.0, 0.0], "z1_mm": [-a] * n, "feed_mm_min": [f * 2 * 1000.0] * n, "spindle_rpm": [1000.0] * n,
+        "tool": pa.array([1] * n, pa.int32()), "t_start_s": [0.0, 1.0], "t_end_s": [1.0, 2.0]})
+    stock = {"box": [-30, -30, -10, 30, 30, 0]}
+    params = {"tool": tool, "render": {"backend": "auto", "px_per_mm": 20}}
+    cf = pa.table({"pass_id": pa.array([1], pa.int32()), "is_cutting": [True],
+                   "pred_x_mm": [0.005], "pred_y_mm": [0.0], "pred_z_mm": [-a]})
+    ap = pa.table({"pass_id": pa.array([1], pa.int32()), "predict": [True]})
+    out = generating.run({"passes": passes, "stock": stock, "cut_filter": cf, "angle_prune": ap}, params)
+    E, z, phi = unpack_engagement(out["engagement"].to_pylist()[0])
+    th = np.radians(phi)                                   # feed +x: angle from +x
+    # the corner pass's sweep covers every point with y < 0 within R of its line x = 0, and its end
+    # cap the points within R of the corner: all the front points at y < -tol there are cut
+    r = np.sqrt(np.clip(R ** 2 - (R - z) ** 2, 0, None))
+    y = r[:, None] * np.sin(th)[None]
+    x = 0.005 + r[:, None] * np.cos(th)[None]
+    low = (z < a - 2 * generating.fine_tolerance(20) - z[0])[:, None]
+    assert low.any()
+    cut_by_corner = low & (y < -0.02) & (np.abs(x) < R)
+    assert cut_by_corner.sum() > 100 and not E[cut_by_corner].any()
