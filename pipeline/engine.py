@@ -10,6 +10,10 @@ Tasks run ``execute_partition`` on the workers: read inputs from the cache, call
 ``run``, check every output against its schema, write the entry atomically, return a small record
 (never the tables). Workers therefore need the output directory on a shared filesystem when the
 cluster spans machines.
+
+A stage that declares ``SHARDS = n`` (``generating``: one program's predictions are the night's
+work) runs each partition as n tasks, ``run(inputs, params, shard=(i, n))``, each cached under its
+own key; when all n are done the client joins them (``combine_shards``) into the partition's entry.
 """
 from __future__ import annotations
 
@@ -32,7 +36,7 @@ from pipeline.cache import Cache, digest, file_sha256
 from pipeline.config import Workflow, WorkflowError, load_workflow, program_paths, resolve
 from stages import InputError
 
-# Stage modules in execution order. A stage runs once per program partition.
+# Stage modules in execution order. A stage runs once per program partition (or per shard of it).
 STAGE_MODULES = ["stages.parse", "stages.split", "stages.cut_filter", "stages.angle_prune", "stages.generating",
                  "stages.forces", "stages.deflection", "stages.errors", "stages.correct"]
 
@@ -370,8 +374,10 @@ def _collect_file_hashes(obj, out: dict, prefix: str = ""):
 
 
 # --- worker side ----------------------------------------------------------------------------------------
-def execute_partition(stage_module: str, cache_root: str, key: str, inputs: dict, params: dict) -> dict:
-    """Run one stage on one partition (on a Dask worker). Returns a small record, never tables."""
+def execute_partition(stage_module: str, cache_root: str, key: str, inputs: dict, params: dict,
+                      shard: Optional[tuple] = None) -> dict:
+    """Run one stage on one partition, or one shard of it (on a Dask worker). Returns a small
+    record, never tables."""
     import pyarrow.parquet as pq
     t0 = time.perf_counter()
     stage = importlib.import_module(stage_module)
@@ -380,7 +386,7 @@ def execute_partition(stage_module: str, cache_root: str, key: str, inputs: dict
         return {"ok": True, "elapsed_s": 0.0}
     try:
         loaded = {n: (pq.read_table(v) if kind == "table" else v) for n, (kind, v) in inputs.items()}
-        result = stage.run(loaded, params)
+        result = stage.run(loaded, params) if shard is None else stage.run(loaded, params, shard=tuple(shard))
         missing = set(stage.OUTPUTS) - set(result)
         if missing:
             raise RuntimeError(f"stage {stage.NAME} did not return tables {sorted(missing)}")
@@ -411,24 +417,68 @@ def _close(client):
         cluster.close()
 
 
+def shard_key(key: str, i: int, n: int) -> str:
+    """Cache key of shard ``i`` of ``n`` of a partition's entry ``key``."""
+    return f"{key}-shard{i}of{n}"
+
+
 def _run_tasks(client, stage, todo, run: Run, progress: bool):
+    """Run ``todo`` = [(partition, key, params)] on the cluster; yields (partition, record) as each
+    partition finishes. A stage declaring ``SHARDS`` = n > 1 runs each partition as n tasks
+    (``stage.run(..., shard=(i, n))``, each cached on its own, so a killed run keeps finished
+    shards) and the partition's entry is ``stage.combine_shards`` of them."""
     from distributed import as_completed
     from tqdm import tqdm
-    futs = {}
+    n_sh = max(1, int(getattr(stage, "SHARDS", 1)))
+    futs, left, recs = {}, {}, {}
     for part, key, params in todo:
-        f = client.submit(execute_partition, stage.__name__, str(run.cache.root), key,
-                          run.task_inputs(stage, part), params, key=f"{stage.NAME}-{key}", pure=False)
-        futs[f] = part
-    bar = tqdm(total=len(futs), desc=f"{stage.NAME:>12}", unit="prog", disable=not progress or None,
+        inputs = run.task_inputs(stage, part)
+        if n_sh == 1:
+            f = client.submit(execute_partition, stage.__name__, str(run.cache.root), key, inputs, params,
+                              key=f"{stage.NAME}-{key}", pure=False)
+            futs[f] = (part, key)
+            continue
+        left[key], recs[key] = n_sh, []
+        for i in range(n_sh):
+            sk = shard_key(key, i, n_sh)
+            f = client.submit(execute_partition, stage.__name__, str(run.cache.root), sk, inputs, params,
+                              (i, n_sh), key=f"{stage.NAME}-{sk}", pure=False)
+            futs[f] = (part, key)
+    bar = tqdm(total=len(futs), desc=f"{stage.NAME:>12}", unit="task", disable=not progress or None,
                file=sys.stderr, leave=True)
     try:
         for fut in as_completed(futs):
-            part = futs[fut]
+            part, key = futs[fut]
             try:
                 rec = fut.result()
             except Exception as e:  # the worker died (out of memory, crash): recorded, run goes on
                 rec = {"ok": False, "message": f"{stage.NAME}: worker failed: {type(e).__name__}: {e}"}
             bar.update(1)
-            yield part, rec
+            if n_sh == 1:
+                yield part, rec
+                continue
+            recs[key].append(rec)
+            left[key] -= 1
+            if left[key] == 0:
+                yield part, _join_shards(stage, run.cache, key, n_sh, recs.pop(key))
     finally:
         bar.close()
+
+
+def _join_shards(stage, cache: Cache, key: str, n: int, recs: list) -> dict:
+    """The partition's record once all its shards are done: its entry written from theirs."""
+    elapsed = sum(r.get("elapsed_s", 0.0) for r in recs)
+    bad = [r for r in recs if not r["ok"]]
+    if bad:
+        return {**bad[0], "elapsed_s": elapsed}
+    try:
+        parts = [{name: cache.read(stage.NAME, shard_key(key, i, n), name) for name in stage.OUTPUTS}
+                 for i in range(n)]
+        joined = stage.combine_shards(parts)
+        cache.write(stage.NAME, key, {name: schemas.check(name, joined[name]) for name in stage.OUTPUTS})
+        for i in range(n):                     # the joined entry replaces them
+            shutil.rmtree(cache.entry(stage.NAME, shard_key(key, i, n)), ignore_errors=True)
+        return {"ok": True, "elapsed_s": elapsed}
+    except Exception as e:
+        return {"ok": False, "message": f"{stage.NAME}: joining shards: {type(e).__name__}: {e}",
+                "traceback": traceback.format_exc(), "elapsed_s": elapsed}

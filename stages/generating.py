@@ -59,6 +59,10 @@ VERSION = "7"
 INPUTS = ("passes", "stock", "cut_filter", "angle_prune")
 OUTPUTS = ("generating", "engagement")
 PARAMS = ("tool", "render")
+# The engine runs a program's predictions as this many shards on separate workers (each shard
+# every SHARDS-th predicted pass, so pocket walls and floors spread evenly; each shard repeats the
+# ordered scan for its own snapshots, a few % of the work) and joins them with combine_shards.
+SHARDS = 4
 
 ID_W, ID_T1, ID_T2, ID_M = 0, 1, 2, 3
 STEEP_DEG = 60.0          # claim 6: re-render along the normal above this contact angle
@@ -441,9 +445,12 @@ def _scan_program(pg, shape, wp, renderer, px_per_mm, mesh, predict_idx, tips, f
     n_side = int(np.ceil(2 * half * px_per_mm))
     final = []
     for t, view in enumerate(views):
+        mine = np.nonzero(tile_of == t)[0]
+        if not len(mine):                                      # no prediction point in this tile
+            final.append(None)
+            continue
         lo_w, hi_w = geo.window_xy_bounds([view])
         inside = cand[geo.overlaps(lo_w, hi_w, bounds[cand, 0], bounds[cand, 1])[0]]
-        mine = np.nonzero(tile_of == t)[0]
         mine = mine[np.argsort(predict_idx[mine], kind="stable")]
         rects = []
         for k in mine:
@@ -635,7 +642,9 @@ def _engagement_along_normal(eng, ks, gen, pg, shape, wp, renderer, px_per_mm, c
             eng[k] = (_trim(E), dz, eng[k][2])
 
 
-def run(inputs: dict, params: dict) -> dict:
+def run(inputs: dict, params: dict, shard: tuple[int, int] | None = None) -> dict:
+    """Generating points and engagement of the predicted passes; with ``shard`` = (i, n) only
+    every n-th of them from the i-th on (see ``SHARDS``)."""
     passes = inputs["passes"]
     tool = params["tool"]
     shape = geo.tool_from_params(tool)
@@ -660,6 +669,9 @@ def run(inputs: dict, params: dict) -> dict:
     app = ap.column("pass_id").to_numpy()
     apf = ap.column("predict").to_numpy(zero_copy_only=False).astype(bool)
     chosen = sorted(int(p) for p, k in zip(app, apf) if k and int(p) in pred and int(p) in pos)
+    if shard is not None:
+        i, n = shard
+        chosen = chosen[i::n]
     idx = np.array([pos[p] for p in chosen], np.int64)
     tips = np.array([pred[p] for p in chosen], float).reshape(-1, 3)
     gen, eng = generating(pg, shape, wp, renderer, ppm, idx, tips, int(t.get("flutes") or 2))
@@ -679,3 +691,13 @@ def run(inputs: dict, params: dict) -> dict:
                   "feed_dir_y": pa.array([x[2][1] for x in eng], pa.float64()),
                   "ramp_deg": pa.array(ramp_deg(pg.p1[idx] - pg.p0[idx]), pa.float64())})
     return {"generating": schemas.check("generating", g), "engagement": schemas.check("engagement", e)}
+
+
+def combine_shards(parts: list[dict]) -> dict:
+    """The tables of one program from its shards' tables, in pass order."""
+    out = {}
+    for name in OUTPUTS:
+        t = pa.concat_tables([p[name] for p in parts])
+        out[name] = t.take(pa.array(np.argsort(t.column("pass_id").to_numpy(), kind="stable")))
+    return out
+
