@@ -330,14 +330,14 @@ def sweep_triangles(mesh: EnvelopeMesh, p0, p1, view_dir=None):
 
 
 def smooth_joints(seg0, seg1, window, radius_mm, tol_mm):
-    """Caps at joints of a smooth chain that the neighbouring sweeps already cover.
+    """Joints of a smooth chain whose full envelope copies can be replaced by :func:`joint_lunes`.
 
     Where segment i ends exactly where segment i+1 (same window) starts and the path turns by
-    less than 2·acos(1 - tol/R), the envelope copy at the joint differs from the union of the
-    two sweeps' bands by at most the tolerance (a wedge of the copy between the two silhouettes),
-    so both copies at the joint can be left out. Envelope copies are the bulk of a sweep's
-    triangles, and CAM output is mostly such chains of short chords. Returns boolean masks
-    (drop_start, drop_end) over the segments.
+    less than 2·acos(1 - tol/R), both copies at the joint are left out and only the lune of the
+    copy that neither sweep covers is drawn (a few % of a copy). Envelope copies are the bulk of
+    a sweep's triangles, and CAM output is mostly such chains of short chords. Returns boolean
+    masks (drop_start, drop_end) over the segments; ``drop_end[i]`` implies segment i+1 starts
+    there.
     """
     seg0 = np.asarray(seg0, float).reshape(-1, 3)
     seg1 = np.asarray(seg1, float).reshape(-1, 3)
@@ -347,15 +347,55 @@ def smooth_joints(seg0, seg1, window, radius_mm, tol_mm):
     if k < 2:
         return drop_start, drop_end
     window = np.asarray(window).reshape(-1)
-    d = seg1 - seg0
-    L = np.linalg.norm(d, axis=1)
-    u = d / np.where(L > 1e-12, L, 1.0)[:, None]
+    u = _unit_directions(seg0, seg1)
+    L = np.linalg.norm(seg1 - seg0, axis=1)
     cos_max = np.cos(2.0 * np.arccos(max(0.0, 1.0 - tol_mm / radius_mm)))
     joint = ((window[:-1] == window[1:]) & np.all(seg1[:-1] == seg0[1:], axis=1)
              & (L[:-1] > 1e-9) & (L[1:] > 1e-9) & (np.einsum("ij,ij->i", u[:-1], u[1:]) >= cos_max))
     drop_end[:-1] = joint
     drop_start[1:] = joint
     return drop_start, drop_end
+
+
+def _unit_directions(seg0, seg1):
+    d = seg1 - seg0
+    L = np.linalg.norm(d, axis=1)
+    return d / np.where(L > 1e-12, L, 1.0)[:, None]
+
+
+def joint_lunes(mesh: EnvelopeMesh, seg0, seg1, drop_end, view_dir=None, chunk: int = 1024):
+    """The part of each left-out joint copy (:func:`smooth_joints`) that no sweep draws.
+
+    At a joint where the path turns from u (segment i) to v (segment i+1), the boundary of the
+    two sweeps' union is their bands plus the copy's faces that face forward along u (the front
+    of sweep i's end: N·u >= 0) and backward along v (the back of sweep i+1's start: N·v <= 0).
+    Faces behind along u lie inside sweep i, faces ahead along v inside sweep i+1. What remains
+    is a lune between the two silhouettes, R·Δ wide for a turn Δ: without it a ray through the
+    lune meets no front face and sees through the sweep. The polyhedral silhouettes are the same
+    edges the bands are built on, so the lune closes against them exactly.
+
+    Returns tris (n, 3, 3), q_deg (n, 3), owner (n,) index of segment i (its end copy).
+    """
+    seg0 = np.asarray(seg0, float).reshape(-1, 3)
+    seg1 = np.asarray(seg1, float).reshape(-1, 3)
+    idx = np.nonzero(np.asarray(drop_end, bool))[0]
+    if len(idx) == 0:
+        return np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0, np.int64)
+    u = _unit_directions(seg0, seg1)
+    nrm = mesh.face_normals[mesh.face_of_tri]                          # (m, 3)
+    tri_ok = (np.ones(len(nrm), bool) if view_dir is None
+              else nrm @ np.asarray(view_dir, float) < -1e-9)
+    cand = np.nonzero(tri_ok)[0]
+    nrm = nrm[cand]
+    owners, sels = [], []
+    for a in range(0, len(idx), chunk):                                # bounded (chunk × m) masks
+        j = idx[a:a + chunk]
+        lune = (u[j] @ nrm.T >= -1e-9) & (u[j + 1] @ nrm.T <= 1e-9)
+        o, t = np.nonzero(lune)
+        owners.append(j[o])
+        sels.append(cand[t])
+    owner, sel = np.concatenate(owners), np.concatenate(sels)
+    return mesh.tris[sel] + seg1[owner, None, :], mesh.q_deg[sel], owner
 
 
 def ordered_sweep_scene(mesh: EnvelopeMesh, p0, p1, ident, view_dir=(0.0, 0.0, 1.0), bias=0.0):
@@ -376,9 +416,10 @@ def ordered_sweep_scene(mesh: EnvelopeMesh, p0, p1, ident, view_dir=(0.0, 0.0, 1
     o0 = np.nonzero(~drop0)[0][o0]
     t1, q1, _, o1 = envelope_copies(mesh, p1[~drop1], view_dir=view_dir)
     o1 = np.nonzero(~drop1)[0][o1]
-    tris = np.concatenate([tb, t0, t1])
-    q = np.concatenate([qb, q0, q1])
-    key = np.concatenate([ob * 3, o0 * 3 + 1, o1 * 3 + 2])
+    tl, ql, ol = joint_lunes(mesh, p0, p1, drop1, view_dir=view_dir)
+    tris = np.concatenate([tb, t0, t1, tl])
+    q = np.concatenate([qb, q0, q1, ql])
+    key = np.concatenate([ob * 3, o0 * 3 + 1, o1 * 3 + 2, ol * 3 + 2])
     order = np.argsort(key, kind="stable")
     owner = key[order] // 3
     tris, q = tris[order], q[order]
@@ -596,6 +637,7 @@ def segment_scene(mesh: EnvelopeMesh, seg0, seg1, window, tri_id, view_dir, bias
     ok = np.ones(3 * k, bool)
     drop0, drop1 = smooth_joints(seg0, seg1, window, mesh.shape.radius_mm, mesh.tol_mm)
     ok &= ~np.stack([drop0, drop1, np.zeros(k, bool)], 1).reshape(-1)
+    lune_t, lune_q, lune_o = [], [], []
     if window_bounds is not None:
         flat = mesh.tris.reshape(-1, 3)
         mlo, mhi = flat.min(0) - mesh.tol_mm, flat.max(0) + mesh.tol_mm     # the true envelope's box
@@ -624,11 +666,21 @@ def segment_scene(mesh: EnvelopeMesh, seg0, seg1, window, tri_id, view_dir, bias
         if len(sel):
             t_, q_, o_ = sweep_bands(m_, uniq[sel, :3], uniq[sel, 3:6])
             parts_t.append(t_), parts_q.append(q_), parts_g.append(sel[o_] * 3 + 2)
-    if not parts_t:
+    # the lunes of the left-out joint copies, per segment (they depend on the next segment too)
+    lune_end = drop1.copy()
+    if window_bounds is not None:
+        lune_end &= ((seg1[:, 0] + mlo[0] <= whi[window, 0]) & (seg1[:, 0] + mhi[0] >= wlo[window, 0])
+                     & (seg1[:, 1] + mlo[1] <= whi[window, 1]) & (seg1[:, 1] + mhi[1] >= wlo[window, 1]))
+    fine_lune = fine_ends[:, 1]
+    for m_, sel in ((mesh, lune_end & fine_lune), (coarse_mesh, lune_end & ~fine_lune)):
+        if sel.any():
+            t_, q_, o_ = joint_lunes(m_, seg0, seg1, sel, view_dir=view_dir)
+            lune_t.append(t_), lune_q.append(q_), lune_o.append(o_)
+    if not parts_t and not lune_t:
         return Scene.concat([])
-    tris = np.concatenate(parts_t)
-    q = np.concatenate(parts_q)
-    group = np.concatenate(parts_g)
+    tris = np.concatenate(parts_t) if parts_t else np.zeros((0, 3, 3))
+    q = np.concatenate(parts_q) if parts_q else np.zeros((0, 3))
+    group = np.concatenate(parts_g) if parts_g else np.zeros(0, np.int64)
     order = np.argsort(group, kind="stable")
     tris, q, group = tris[order], q[order], group[order]
     starts = np.searchsorted(group, np.arange(3 * nu + 1))
@@ -637,11 +689,13 @@ def segment_scene(mesh: EnvelopeMesh, seg0, seg1, window, tri_id, view_dir, bias
     pair, grp = pair[ok], grp[ok]
     cnt = counts[grp]
     idx = ragged_ranges(starts[:-1][grp], cnt)
-    rep = np.repeat(pair, cnt)
-    attrs = np.zeros((len(idx), 3, 3), np.float32)
+    rep = np.concatenate([np.repeat(pair, cnt)] + lune_o)
+    tris = np.concatenate([tris[idx]] + lune_t)
+    q = np.concatenate([q[idx]] + lune_q)
+    attrs = np.zeros((len(rep), 3, 3), np.float32)
     attrs[:, :, 0] = np.broadcast_to(np.asarray(tri_id, float), (k,))[rep, None]
-    attrs[:, :, 2] = q[idx]
-    return Scene(tris[idx], attrs, np.broadcast_to(np.asarray(bias, float), (k,))[rep].copy(),
+    attrs[:, :, 2] = q
+    return Scene(tris, attrs, np.broadcast_to(np.asarray(bias, float), (k,))[rep].copy(),
                  window[rep])
 
 

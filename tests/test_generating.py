@@ -320,14 +320,12 @@ def test_a_corner_behind_stays_in_the_snapshot():
     assert cut_by_corner.sum() > 100 and not E[cut_by_corner].any()
 
 
-@pytest.mark.xfail(strict=True, reason="known defect (README, render stages): the copies at the joints "
-                   "of a turning chain are left out, and the lune between the two silhouettes is drawn by no band")
 def test_a_turning_chain_drawn_in_one_draw_equals_its_passes_drawn_one_by_one():
     """The material after a chain of chords climbing a wall (5° per 0.7 mm chord, as on the sample's
     pocket walls) must not depend on how the scan groups them into draws: drawn pass by pass every
-    envelope copy is there, so that is the reference. Fails today by 0.82 mm: through the hole
-    along each joint's lune a ray sees the stock top (on the sample, the earlier passes' surface,
-    up to 0.15 mm too high). Passes when only collinear joints drop their copies."""
+    envelope copy is there, so that is the reference. Failed by 0.82 mm while the joints' copies
+    were left out whole: through the lune between the two silhouettes, which no band draws, a ray
+    saw the stock top (on the sample, the earlier passes' surface, up to 0.15 mm too high)."""
     from stages.cut_filter import scan_tiles, z_range
     tool = {"type": "ball", "diameter_mm": 10, "flutes": 2, "stickout_mm": 30.0}
     shape = geo.tool_from_params(tool)

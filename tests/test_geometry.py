@@ -78,6 +78,50 @@ def test_sweep_from_below_matches_brute_force(kind):
     assert np.mean((im.id >= 0) == inside) > 0.995
 
 
+def _turning_chain(n=14, chord=0.7, turn_deg=4.0, climb=0.05):
+    """Chords turning by ``turn_deg`` each (under the 5° at which joints drop their copies) and climbing."""
+    pts = [np.zeros(3)]
+    for a in np.radians(turn_deg * np.arange(n)):
+        pts.append(pts[-1] + [chord * np.cos(a), chord * np.sin(a), climb])
+    pts = np.array(pts)
+    return pts[:-1], pts[1:]
+
+
+@pytest.mark.parametrize("builder", ["segment_scene", "ordered_sweep_scene"])
+def test_turning_chain_from_below_matches_brute_force(builder):
+    """A chain whose joint copies are left out (all but the lune) renders the lower envelope of the
+    whole motion: no hole at any joint (a ray through a missing lune sees through the sweep) and
+    never above the true surface. Reference: densely sampled tool positions, segment by segment."""
+    shape = geo.tool_from_params(TOOLS["ball"])
+    tol = 0.005
+    mesh = geo.envelope_mesh(shape, tol)
+    p0, p1 = _turning_chain()
+    k = len(p0)
+    drop0, drop1 = geo.smooth_joints(p0, p1, np.zeros(k), shape.radius_mm, tol)
+    assert drop1[:-1].all() and drop0[1:].all()                     # every joint is a smooth one
+    if builder == "segment_scene":
+        sc = geo.segment_scene(mesh, p0, p1, np.zeros(k, np.int64), np.arange(k) + 1.0, (0, 0, 1.0))
+    else:
+        sc = geo.ordered_sweep_scene(mesh, p0, p1, np.arange(k) + 1.0)
+    view = View((4.5, 2.0, 0.0), (0, 0, 1.0), (0, 1.0, 0), 22, 18, 10, -10, 30)
+    im = CPURenderer().render([view], sc)[0]
+    allpix = view.pixel_points(*np.indices(im.id.shape).reshape(2, -1), 0)[:, :2]
+    ref = np.min([geo.sweep_lowest_z(shape, a, b, allpix, n_t=301) for a, b in zip(p0, p1)], axis=0)
+    ref = ref.reshape(im.id.shape)
+    inside = np.isfinite(ref)
+    drawn = im.id >= 0
+    # the footprint: no pixel inside the swept area is left empty (each hole would be a lune)
+    assert inside.sum() > 12000 and np.mean(drawn[inside]) > 0.999
+    gy, gx = np.gradient(np.where(inside, ref, np.nan), 1 / view.px_per_mm)
+    gentle = inside & drawn & (np.hypot(gx, gy) <= np.tan(np.radians(60)))
+    err = im.depth[gentle] - ref[gentle]
+    assert gentle.sum() > 10000
+    assert err.max() <= 2 * tol + 2e-3 and err.min() >= -2e-3
+    # and the point of leaving the copies out: far fewer triangles than a full copy per joint
+    full = geo.segment_scene(mesh, p0, p1, np.arange(k), np.arange(k) + 1.0, (0, 0, 1.0))
+    assert len(sc.tris) < 0.6 * len(full.tris)
+
+
 def test_bands_vertical_plunge_and_zero_length():
     mesh = geo.envelope_mesh(geo.tool_from_params(TOOLS["ball"]), 0.05)
     t, q, o = geo.sweep_bands(mesh, [[0, 0, 5.0], [1, 1, 1.0]], [[0, 0, 0.0], [1, 1, 1.0]])
