@@ -55,7 +55,7 @@ from stages.cut_filter import (PASSES_PER_DRAW, coarse_tolerance, fine_tolerance
 from stages.render import Scene, Snapshot, View
 
 NAME = "generating"
-VERSION = "9"
+VERSION = "10"
 INPUTS = ("passes", "stock", "cut_filter", "angle_prune")
 OUTPUTS = ("generating", "engagement")
 PARAMS = ("tool", "render")

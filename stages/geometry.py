@@ -329,15 +329,15 @@ def sweep_triangles(mesh: EnvelopeMesh, p0, p1, view_dir=None):
     return tris, q, owner
 
 
-def smooth_joints(seg0, seg1, window, radius_mm, tol_mm):
-    """Joints of a smooth chain whose full envelope copies can be replaced by :func:`joint_lunes`.
+def chain_joints(seg0, seg1, window):
+    """Joints of chains whose two envelope copies can be replaced by :func:`joint_lunes`.
 
-    Where segment i ends exactly where segment i+1 (same window) starts and the path turns by
-    less than 2·acos(1 - tol/R), both copies at the joint are left out and only the lune of the
-    copy that neither sweep covers is drawn (a few % of a copy). Envelope copies are the bulk of
-    a sweep's triangles, and CAM output is mostly such chains of short chords. Returns boolean
-    masks (drop_start, drop_end) over the segments; ``drop_end[i]`` implies segment i+1 starts
-    there.
+    Where segment i ends exactly where segment i+1 (same window) starts, the copy at the joint is
+    the end of one sweep and the start of the next: only its lune lies outside both, whatever the
+    turn, so both full copies are left out and the lune is drawn instead (a few % of a copy on a
+    smooth chain, a quarter of it at a right-angle corner). Envelope copies are the bulk of a
+    sweep's triangles, and CAM output is mostly chains of short chords. Returns boolean masks
+    (drop_start, drop_end) over the segments; ``drop_end[i]`` implies segment i+1 starts there.
     """
     seg0 = np.asarray(seg0, float).reshape(-1, 3)
     seg1 = np.asarray(seg1, float).reshape(-1, 3)
@@ -347,11 +347,9 @@ def smooth_joints(seg0, seg1, window, radius_mm, tol_mm):
     if k < 2:
         return drop_start, drop_end
     window = np.asarray(window).reshape(-1)
-    u = _unit_directions(seg0, seg1)
     L = np.linalg.norm(seg1 - seg0, axis=1)
-    cos_max = np.cos(2.0 * np.arccos(max(0.0, 1.0 - tol_mm / radius_mm)))
     joint = ((window[:-1] == window[1:]) & np.all(seg1[:-1] == seg0[1:], axis=1)
-             & (L[:-1] > 1e-9) & (L[1:] > 1e-9) & (np.einsum("ij,ij->i", u[:-1], u[1:]) >= cos_max))
+             & (L[:-1] > 1e-9) & (L[1:] > 1e-9))
     drop_end[:-1] = joint
     drop_start[1:] = joint
     return drop_start, drop_end
@@ -364,15 +362,15 @@ def _unit_directions(seg0, seg1):
 
 
 def joint_lunes(mesh: EnvelopeMesh, seg0, seg1, drop_end, view_dir=None, chunk: int = 1024):
-    """The part of each left-out joint copy (:func:`smooth_joints`) that no sweep draws.
+    """The part of each left-out joint copy (:func:`chain_joints`) that no sweep draws.
 
     At a joint where the path turns from u (segment i) to v (segment i+1), the boundary of the
     two sweeps' union is their bands plus the copy's faces that face forward along u (the front
     of sweep i's end: N·u >= 0) and backward along v (the back of sweep i+1's start: N·v <= 0).
-    Faces behind along u lie inside sweep i, faces ahead along v inside sweep i+1. What remains
-    is a lune between the two silhouettes, R·Δ wide for a turn Δ: without it a ray through the
-    lune meets no front face and sees through the sweep. The polyhedral silhouettes are the same
-    edges the bands are built on, so the lune closes against them exactly.
+    Faces behind along u lie inside sweep i, faces ahead along v inside sweep i+1, at any turn.
+    What remains is a lune between the two silhouettes, R·Δ wide for a turn Δ: without it a ray
+    through the lune meets no front face and sees through the sweep. The polyhedral silhouettes
+    are the same edges the bands are built on, so the lune closes against them exactly.
 
     Returns tris (n, 3, 3), q_deg (n, 3), owner (n,) index of segment i (its end copy).
     """
@@ -411,7 +409,7 @@ def ordered_sweep_scene(mesh: EnvelopeMesh, p0, p1, ident, view_dir=(0.0, 0.0, 1
     p0 = np.asarray(p0, float).reshape(-1, 3)
     p1 = np.asarray(p1, float).reshape(-1, 3)
     tb, qb, ob = sweep_bands(mesh, p0, p1, view_dir=view_dir)
-    drop0, drop1 = smooth_joints(p0, p1, np.zeros(len(p0)), mesh.shape.radius_mm, mesh.tol_mm)
+    drop0, drop1 = chain_joints(p0, p1, np.zeros(len(p0)))
     t0, q0, _, o0 = envelope_copies(mesh, p0[~drop0], view_dir=view_dir)
     o0 = np.nonzero(~drop0)[0][o0]
     t1, q1, _, o1 = envelope_copies(mesh, p1[~drop1], view_dir=view_dir)
@@ -635,7 +633,7 @@ def segment_scene(mesh: EnvelopeMesh, seg0, seg1, window, tri_id, view_dir, bias
     pair = np.repeat(np.arange(k), 3)
     grp = (inv[:, None] * 3 + np.arange(3)[None]).reshape(-1)
     ok = np.ones(3 * k, bool)
-    drop0, drop1 = smooth_joints(seg0, seg1, window, mesh.shape.radius_mm, mesh.tol_mm)
+    drop0, drop1 = chain_joints(seg0, seg1, window)
     ok &= ~np.stack([drop0, drop1, np.zeros(k, bool)], 1).reshape(-1)
     lune_t, lune_q, lune_o = [], [], []
     if window_bounds is not None:

@@ -79,7 +79,7 @@ def test_sweep_from_below_matches_brute_force(kind):
 
 
 def _turning_chain(n=14, chord=0.7, turn_deg=4.0, climb=0.05):
-    """Chords turning by ``turn_deg`` each (under the 5° at which joints drop their copies) and climbing."""
+    """Chords turning by ``turn_deg`` each and climbing."""
     pts = [np.zeros(3)]
     for a in np.radians(turn_deg * np.arange(n)):
         pts.append(pts[-1] + [chord * np.cos(a), chord * np.sin(a), climb])
@@ -87,18 +87,20 @@ def _turning_chain(n=14, chord=0.7, turn_deg=4.0, climb=0.05):
     return pts[:-1], pts[1:]
 
 
+@pytest.mark.parametrize("turn_deg", [4.0, 40.0])
 @pytest.mark.parametrize("builder", ["segment_scene", "ordered_sweep_scene"])
-def test_turning_chain_from_below_matches_brute_force(builder):
+def test_turning_chain_from_below_matches_brute_force(builder, turn_deg):
     """A chain whose joint copies are left out (all but the lune) renders the lower envelope of the
     whole motion: no hole at any joint (a ray through a missing lune sees through the sweep) and
-    never above the true surface. Reference: densely sampled tool positions, segment by segment."""
+    never above the true surface, on a smooth chain (CAM chords at 4°) and at sharp corners.
+    Reference: densely sampled tool positions, segment by segment."""
     shape = geo.tool_from_params(TOOLS["ball"])
     tol = 0.005
     mesh = geo.envelope_mesh(shape, tol)
-    p0, p1 = _turning_chain()
+    p0, p1 = _turning_chain(n=14 if turn_deg < 10 else 6, chord=0.7 if turn_deg < 10 else 2.0, turn_deg=turn_deg)
     k = len(p0)
-    drop0, drop1 = geo.smooth_joints(p0, p1, np.zeros(k), shape.radius_mm, tol)
-    assert drop1[:-1].all() and drop0[1:].all()                     # every joint is a smooth one
+    drop0, drop1 = geo.chain_joints(p0, p1, np.zeros(k))
+    assert drop1[:-1].all() and drop0[1:].all()                     # every joint is drawn as its lune
     if builder == "segment_scene":
         sc = geo.segment_scene(mesh, p0, p1, np.zeros(k, np.int64), np.arange(k) + 1.0, (0, 0, 1.0))
     else:
