@@ -643,10 +643,11 @@ def test_cli_simulate_writes_a_measurement_file_the_reader_accepts(tmp_path):
     assert r.exit_code == 2 and "unknown effect 'spindle'" in r.output
 
 
-@pytest.mark.xfail(strict=True, reason="regression since the joint lunes (2026-11-24): on these two rows the "
-                   "row-end passes' engagement changed and the diagnosis adds a thermal drift and a machine geometry "
-                   "that cancel each other (226 µm, -271 µm/m) next to the runout; the full part's blind check is "
-                   "unaffected (README)")
+@pytest.mark.xfail(strict=True, reason="regression since the joint lunes (2026-11-24): the row-end chord's "
+                   "prediction point moved from its middle (t 0.50) to t 0.62, toward the corner, where its engagement "
+                   "differs from the virtual machine's (taken at the middle of each pass); on these two rows the "
+                   "diagnosis then adds a thermal drift and a machine geometry that cancel each other (226 µm, "
+                   "-271 µm/m) next to the runout; the full part's blind check is unaffected (README)")
 def test_cli_run_simulate_diagnose_end_to_end_on_two_rows(tmp_path):
     """The whole job on the first two rows of the sample: prediction through the render chain, a
     runout of 10 µm on the virtual machine, the diagnosis with its tables, summary and report."""
