@@ -361,7 +361,7 @@ def public_summary(res: dict) -> dict:
             "sigma_um", "n_points", "n_blocks",
             "rms_before_um", "rms_after_um", "p95_before_um", "p95_after_um", "max_before_um", "max_after_um",
             "shrink", "shrink_where_acting", "ranking", "ambiguous_with",
-            "detection_limits")  # after: held-out, effects added to the simulation
+            "detection_limits", "beyond_limits")  # after: held-out, effects added to the simulation
     out = {k: res[k] for k in keys if k in res}
     out["held_out"] = "K-fold over spatial blocks: every point predicted by the fit without its block"
     out["model_update"] = model_update(res["params"])
@@ -427,6 +427,10 @@ def report(gdir: Path, F: dict, res: dict, summary: dict) -> None:
     se_info = summary.get("params_se_info", {})
     amb = "; ".join(f"{e}: cannot be told from " + ", ".join(f"{a['effect']} (correlation {a['correlation']:.3f})" for a in v)
                     for e, v in summary.get("ambiguous_with", {}).items())
+    from stages.gap import LIMITS
+    beyond = "".join(f"<li>step {r['step']}: adding {r['effect']} took {', '.join(r['beyond_limits'])} beyond "
+                     f"{', '.join(str(LIMITS[k]) for k in r['beyond_limits'])}: <code>{json.dumps(r['params'])}</code></li>"
+                     for r in summary.get("beyond_limits", []))
     html = f"""<html><head><meta charset="utf-8"><title>Gap diagnosis</title></head><body>
 <h1>Sim-to-real gap</h1>
 <p>Effect: <b>{summary['effect']}</b>; all added: {summary['effects']}; parameters: <code>{json.dumps(summary['params'])}</code></p>
@@ -444,6 +448,11 @@ assuming independent residuals. ±2 SE is about a 95 % interval.</p>
 <h2>Not seen: detection limits next to the effects found</h2>
 <p>{amb or "No effect found is ambiguous with another on these points."}</p>
 <table border=1><tr><th>effect</th><th>would not be claimed up to (RMS µm)</th><th>signature correlation</th><th>with</th></tr>{lim}</table>
+<h2>Not chosen: fits beyond a real machine's limits</h2>
+<p>Limits (4 × the largest the seeds measured): thermal drift reached by the run's end {LIMITS['thermal_drift']:g} µm,
+machine geometry {LIMITS['machine_geometry']:g} µm/mm per coefficient, runout {LIMITS['runout']:g} µm,
+tool contour {LIMITS['tool_contour']:g} µm. Beyond them two effects cancel each other; that combination is not chosen.</p>
+<ul>{beyond or "<li>none</li>"}</ul>
 <h2>Where (blocks with mean residual beyond the noise)</h2>
 <table border=1><tr><th>bbox mm</th><th>passes</th><th>q deg</th><th>time s</th><th>mean µm</th><th>95 %</th></tr>{wh}</table>
 </body></html>"""
