@@ -125,6 +125,9 @@ class Correct(_Strict):
     relax: float = Field(1.0, gt=0, le=1)
     ln_normals: bool = False                 # also write Heidenhain-style LN blocks with normals
     comp_table: bool = False                 # also write a contact-angle compensation table
+    # undo the tool deflection as a vector (−δ; its tangential part shifts cusps), the rest of the
+    # error along the normals (False: everything along the normals, seed 000 para 0084)
+    deflection_vector: bool = True
 
 
 class Measurements(_Strict):

@@ -6,6 +6,8 @@ SCHEMA = pa.schema([
     pa.field('program_id', pa.string()),
     pa.field('pass_id', pa.int32()),
     pa.field('err_deflection_um', pa.float64()),   # (dx, dy, 0)(θ_C)·n
+    pa.field('defl_x_um', pa.float64()),           # the tool's deflection (dx, dy, 0)(θ_C) of the
+    pa.field('defl_y_um', pa.float64()),           # passage that leaves C, machine frame
     pa.field('err_shape_um', pa.float64()),        # tool profile table at contact_deg
     pa.field('err_um', pa.float64()),
     pa.field('nx', pa.float64()),

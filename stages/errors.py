@@ -19,6 +19,10 @@ For the generating point C of a pass (``generating``: φ_C, q_C, n_C) and each f
   with its own pass's deflection; the error is the minimum of their stand-off from C plus their
   error at C (``passage_envelope``). ``finished_by`` names the pass whose passage leaves C (the
   pass itself but near the ends of passes shorter than a revolution's feed).
+- The deflection vector (dx, dy, 0)(θ_C) of the passage that leaves C is kept (``defl_x_um``,
+  ``defl_y_um``): its part along n is in the error, its tangential part shifts the cusps between
+  rows and is what ``correct`` needs to put the tool back where it belongs (not only the surface
+  along n).
 - Shape error: the tool profile table (claim 2, ``tool.profile``: CSV ``contact_deg,error_um``,
   error_um > 0 = the tool is smaller than nominal there = material left), linearly interpolated at
   q_C and held constant beyond its first/last row. A profile measured as the envelope of the
@@ -41,7 +45,7 @@ from stages import cutting
 from stages.forces import list_values, match_passes, pick_entry, program_tool_number
 
 NAME = "errors"
-VERSION = "3"
+VERSION = "4"
 INPUTS = ("passes", "generating", "deflection")
 OUTPUTS = ("errors",)
 PARAMS = ("tool",)
@@ -128,7 +132,9 @@ def machining_error(dx_um, dy_um, phi_c_deg, contact_deg, normal, z_c_mm, tool: 
 
     Returns
     -------
-    dict of ndarray (P,): err_deflection_um, err_runout_um, err_shape_um, err_um, spindle_deg, flute
+    dict of ndarray (P,): err_deflection_um, defl_x_um, defl_y_um (the tool's deflection vector at
+    the generating flute's passage, whose projection on n is err_deflection_um), err_runout_um,
+    err_shape_um, err_um, spindle_deg, flute
     """
     flutes = int(tool["flutes"])
     radius = float(tool["diameter_mm"]) / 2
@@ -138,8 +144,9 @@ def machining_error(dx_um, dy_um, phi_c_deg, contact_deg, normal, z_c_mm, tool: 
     n = np.asarray(normal, dtype=float)
     theta = cutting.spindle_angle_at(phi[:, None], np.asarray(z_c_mm, float)[:, None], j[None, :],
                                      flutes, radius, float(tool.get("helix_deg") or 0.0))  # (P, N)
-    e_def = periodic_interp(np.asarray(dx_um, float), theta) * n[:, 0:1] \
-        + periodic_interp(np.asarray(dy_um, float), theta) * n[:, 1:2]
+    ddx = periodic_interp(np.asarray(dx_um, float), theta)
+    ddy = periodic_interp(np.asarray(dy_um, float), theta)
+    e_def = ddx * n[:, 0:1] + ddy * n[:, 1:2]
     rho_um = cutting.flute_offsets_mm(flutes, float(tool.get("runout_um") or 0.0)) * 1e3
     e_run = -rho_um[None, :] * np.sin(np.radians(np.clip(q, 0.0, 90.0)))[:, None]
     total = e_def + e_run
@@ -149,6 +156,8 @@ def machining_error(dx_um, dy_um, phi_c_deg, contact_deg, normal, z_c_mm, tool: 
     shape = shape_error_um(q, profile)
     return {
         "err_deflection_um": e_def[rows, best],
+        "defl_x_um": ddx[rows, best],
+        "defl_y_um": ddy[rows, best],
         "err_runout_um": e_run[rows, best],
         "err_shape_um": shape,
         "err_um": total[rows, best] + shape,
@@ -221,6 +230,7 @@ def run(inputs: dict, params: dict) -> dict:
         "program_id": gen.column("program_id"),
         "pass_id": pa.array(pass_ids.astype(np.int32)),
         "err_deflection_um": res["err_deflection_um"],
+        "defl_x_um": res["defl_x_um"], "defl_y_um": res["defl_y_um"],
         "err_shape_um": res["err_shape_um"],
         "err_um": res["err_um"],
         "nx": normal[:, 0], "ny": normal[:, 1], "nz": normal[:, 2],
@@ -314,6 +324,8 @@ def _deepest_passage(res: dict, finished_by: np.ndarray, passes: pa.Table, rows:
     w = best_pair[k]
     off, e, q = passage(w)
     res["err_deflection_um"][k] = e["err_deflection_um"] + off   # the stand-off counts as material left
+    res["defl_x_um"][k] = e["defl_x_um"]
+    res["defl_y_um"][k] = e["defl_y_um"]
     res["err_runout_um"][k] = e["err_runout_um"]
     res["err_shape_um"][k] = e["err_shape_um"]
     res["err_um"][k] = off + e["err_um"]

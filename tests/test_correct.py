@@ -735,7 +735,7 @@ def test_stage_run_matches_schema():
     assert table.num_rows == int((motion <= 3).sum())
     assert set(table.column("iteration").to_pylist()) == {1}
     assert correct.NAME == "correct" and correct.INPUTS == ("blocks", "passes", "errors")
-    assert correct.OUTPUTS == ("corrected",) and correct.PARAMS == ("correct.max_move_um", "correct.relax")
+    assert correct.OUTPUTS == ("corrected",) and correct.PARAMS == ("correct.max_move_um", "correct.relax", "correct.deflection_vector")
 
 
 def test_incremental_program_random_moves_reverse_check():
