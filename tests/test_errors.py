@@ -92,6 +92,8 @@ def test_deflection_read_at_generating_spindle_angle():
     j = int(np.argmin(cands))
     assert r["spindle_deg"][0] == pytest.approx(cands[j]) and r["flute"][0] == j
     assert r["err_um"][0] == pytest.approx(cands[j] / 10.0, abs=1e-9)
+    # the deflection vector at that passage is kept for the correction: dx(θ_C), dy(θ_C) = 0
+    assert r["defl_x_um"][0] == pytest.approx(cands[j] / 10.0, abs=1e-9) and r["defl_y_um"][0] == 0.0
 
 
 @pytest.mark.parametrize("side", ["right", "left"])
