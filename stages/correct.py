@@ -17,9 +17,10 @@ m = −(e_i n_i + e_j n_j), which realises both errors exactly.
 - The deflection part of the error is undone as a vector (``correct.deflection_vector``, on by
   default; the errors table's ``defl_x_um``/``defl_y_um``, the tool's deflection at the passage
   that leaves the generating point): a vertex moves by −δ̄ (the mean deflection of its predicted
-  passes) plus the move above for the rest of the error (err − δ·n: shape, runout, stand-off).
-  Along n this is the same correction; the tangential part of δ is what a move along the normals
-  cannot give. It shifts the cusps between rows, and where a short pass on a slope meets a floor
+  passes) plus the move above for what −δ̄ leaves of each pass's error along its normal
+  (err − δ̄·n: shape, runout, stand-off, the difference of the two passes' deflections), so both
+  errors are realised along the normals as before wherever they were; the tangential part of δ is
+  what a move along the normals cannot give. It shifts the cusps between rows, and where a short pass on a slope meets a floor
   pass at a vertex, the normals-only move that realises the slope's error (−7 µm at q 10°, a
   45 µm sideways deflection) was capped and lifted the floor by 2–3 µm (the sample's boss foot);
   −δ realises both. Errors without these columns (measured residuals) are corrected along the
@@ -255,9 +256,6 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
     err, nrm, has, defl = _errors_per_pass(passes, errors)
     if not p["deflection_vector"]:
         defl = np.zeros_like(defl)
-    # the deflection is undone as the vector it is (−δ puts the tool where it belongs, cusps
-    # included); the rest of the error (shape, runout, a neighbour's stand-off) along the normals
-    err = err - np.einsum("ij,ij->i", defl, nrm)
     n_pass = passes.num_rows
     if n_pass:
         pb0 = _col(passes, "block_no", np.int64)
@@ -269,10 +267,14 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
         has_a = np.concatenate((has, [False]))
         eb, ea = np.concatenate(([0.0], err)), np.concatenate((err, [0.0]))
         nb_, na_ = np.vstack([np.zeros((1, 3)), nrm]), np.vstack([nrm, np.zeros((1, 3))])
-        node_move = vertex_moves(eb, nb_, has_b, ea, na_, has_a)
+        # the deflection is undone as the vector it is: −δ̄ (the mean of the vertex's predicted
+        # passes) puts the tool back where it belongs, cusps included; what −δ̄ leaves of each
+        # pass's error along its normal (shape, runout, a neighbour's stand-off, the difference of
+        # the two passes' deflections) is realised by the moves along the normals, as before
         db, da = np.vstack([np.zeros((1, 3)), defl]), np.vstack([defl, np.zeros((1, 3))])
-        n_has = np.maximum(has_b.astype(float) + has_a, 1.0)
-        node_move -= (db * has_b[:, None] + da * has_a[:, None]) / n_has[:, None]
+        d_mean = (db * has_b[:, None] + da * has_a[:, None]) / np.maximum(has_b.astype(float) + has_a, 1.0)[:, None]
+        node_move = vertex_moves(eb - np.einsum("ij,ij->i", d_mean, nb_), nb_, has_b,
+                                 ea - np.einsum("ij,ij->i", d_mean, na_), na_, has_a) - d_mean
         node_xyz = np.vstack([pstart, pend[-1:]])
         node_normal = nb_ * has_b[:, None] + na_ * has_a[:, None]
         # vertex → node: the last pass starting at or before the block
@@ -281,9 +283,10 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
         inside = (q >= 0) & (pb1[qc] > block_no)          # interior vertex of a merged pass
         node = np.where(q < 0, 0, qc + 1)
         move = node_move[node]
-        move[inside] = vertex_moves(err[qc[inside]], nrm[qc[inside]], has[qc[inside]],
-                                    err[qc[inside]], nrm[qc[inside]], has[qc[inside]]) \
-            - defl[qc[inside]] * has[qc[inside], None]
+        k_in = qc[inside]
+        e_in = err[k_in] - np.einsum("ij,ij->i", defl[k_in], nrm[k_in])
+        move[inside] = (vertex_moves(e_in, nrm[k_in], has[k_in], e_in, nrm[k_in], has[k_in])
+                        - defl[k_in] * has[k_in, None])
         vnormal = node_normal[node]
         vnormal[inside] = nrm[qc[inside]] * has[qc[inside], None]
         # pass coordinates are the tool tip; blocks may be the ball centre (control_point: center)

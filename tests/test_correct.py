@@ -650,6 +650,26 @@ def test_deflection_is_undone_as_a_vector_where_a_slope_pass_meets_a_floor_pass(
     np.testing.assert_allclose(moves[True][int(np.flatnonzero(ln == 9)[0])], -delta, atol=1e-9)
 
 
+def test_deflection_vectors_that_differ_at_a_wall_corner_still_realise_both_errors():
+    # two walls meeting at 90° (pass a along +x, wall normal +y; pass b along +y, wall normal −x),
+    # each pass with its own deflection: −δ̄ alone would realise only half of each; the moves
+    # along the normals take the rest, so both errors hold exactly (as without the vectors)
+    lines = [b"%", b"O0012", b"G90 G17 G21", b"T1 M6", b"S1000 M3", b"G0 X0.000 Y0.000 Z1.000", b"G1 Z0.000 F100",
+             b"X5.000", b"Y5.000", b"G0 Z10.000", b"M30", b"%", b""]
+    blocks, _ = parse_program(b"\n".join(lines), "t", "p")
+    passes = split_blocks(blocks, dict(SPLIT, split=dict(SPLIT["split"], merge_max_mm=0.0)))
+    cut = passes.filter(pa.compute.not_equal(passes.column("motion"), 0))
+    n = np.array([[0.0, 1.0, 0.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
+    d = np.array([[3.0, 12.0, 0.0], [3.0, 12.0, 0.0], [-20.0, 7.0, 0.0]])   # the second wall's along its feed: 7
+    e = np.einsum("ij,ij->i", n, d) + np.array([0.0, 0.8, -0.5])            # + shape errors
+    err = _errors(cut, e, n).append_column("defl_x_um", pa.array(d[:, 0])).append_column("defl_y_um", pa.array(d[:, 1]))
+    c = correct_once(blocks, passes, err, {"correct": {}})
+    mv = np.stack([c.column(f"{k}_new_mm").to_numpy() - c.column(f"{k}_mm").to_numpy() for k in "xyz"], 1) * 1000
+    m = mv[int(np.flatnonzero(c.column("line_no").to_numpy() == 8)[0])]    # the corner
+    np.testing.assert_allclose([m @ n[1], m @ n[2]], [-e[1], -e[2]], atol=1e-9)
+    assert m[2] == pytest.approx(0.0, abs=1e-12)                           # δ has no z: nothing up or down
+
+
 class CylinderMachine:
     """Independent simulation of the seed's cylinder benchmark (seed 000 Fig. 16/20, paras 0091–0092).
 
