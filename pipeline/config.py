@@ -126,8 +126,9 @@ class Correct(_Strict):
     ln_normals: bool = False                 # also write Heidenhain-style LN blocks with normals
     comp_table: bool = False                 # also write a contact-angle compensation table
     # undo the tool deflection as a vector (−δ; its tangential part shifts cusps), the rest of the
-    # error along the normals (False: everything along the normals, seed 000 para 0084)
-    deflection_vector: bool = True
+    # error along the normals (False: everything along the normals, seed 000 para 0084). Off: on
+    # the sample's boss foot its rounds do not contract (stages/correct.py)
+    deflection_vector: bool = False
 
 
 class Measurements(_Strict):

@@ -663,7 +663,7 @@ def test_deflection_vectors_that_differ_at_a_wall_corner_still_realise_both_erro
     d = np.array([[3.0, 12.0, 0.0], [3.0, 12.0, 0.0], [-20.0, 7.0, 0.0]])   # the second wall's along its feed: 7
     e = np.einsum("ij,ij->i", n, d) + np.array([0.0, 0.8, -0.5])            # + shape errors
     err = _errors(cut, e, n).append_column("defl_x_um", pa.array(d[:, 0])).append_column("defl_y_um", pa.array(d[:, 1]))
-    c = correct_once(blocks, passes, err, {"correct": {}})
+    c = correct_once(blocks, passes, err, {"correct": {"deflection_vector": True}})
     mv = np.stack([c.column(f"{k}_new_mm").to_numpy() - c.column(f"{k}_mm").to_numpy() for k in "xyz"], 1) * 1000
     m = mv[int(np.flatnonzero(c.column("line_no").to_numpy() == 8)[0])]    # the corner
     np.testing.assert_allclose([m @ n[1], m @ n[2]], [-e[1], -e[2]], atol=1e-9)
