@@ -15,21 +15,22 @@ Two passes with the same normal and error give m = −e·n exactly; perpendicula
 m = −(e_i n_i + e_j n_j), which realises both errors exactly.
 
 - Optionally (``correct.deflection_vector``, off by default: see the figures below) the
-  deflection part of the error is undone as a vector (the errors table's ``defl_x_um``/``defl_y_um``, the tool's deflection at the passage
-  that leaves the generating point): a vertex moves by −δ̄ (the mean deflection of its predicted
-  passes) plus the move above for what −δ̄ leaves of each pass's error along its normal
-  (err − δ̄·n: shape, runout, stand-off, the difference of the two passes' deflections), so both
-  errors are realised along the normals as before wherever they were; the tangential part of δ is
-  what a move along the normals cannot give. It shifts the cusps between rows, and where a short pass on a slope meets a floor
-  pass at a vertex, the normals-only move that realises the slope's error (−7 µm at q 10°, a
-  45 µm sideways deflection) was capped and lifted the floor by 2–3 µm (the sample's boss foot);
-  −δ realises both. Errors without these columns (measured residuals) are corrected along the
-  normals alone. Measured (``bench/closed_loop_vm.py``, ``bench/closed_loop_pipeline_samples.py``,
-  error RMS after 3 rounds, % of before, vectors against normals only): cylinder 10.9 against
-  11.7 %, sample pocket wall 20.3 against 17.5 %, boss foot 70.6 against 48.8 %. At the boss foot
-  the deflection of the heavy cuts changes with the sideways moves (40 µm, alternating in sign
-  from vertex to vertex, 71 clipped vertices against 19): the rounds do not contract there. Hence
-  off until the rounds are damped for it.
+  deflection part of the error is undone as a vector (the errors table's ``defl_x_um`` and
+  ``defl_y_um``, the tool's deflection at the passage that leaves the generating point): a vertex
+  moves by −δ̄ (the mean deflection of its predicted passes) plus the move above for what −δ̄
+  leaves of each pass's error along its normal (err − δ̄·n: shape, runout, stand-off, the
+  difference of the two passes' deflections), so both errors are realised along the normals
+  wherever they were before. The tangential part of δ is what moves along the normals cannot
+  give: it shifts the cusps between rows, and where a short pass on a slope meets a floor pass
+  (the sample's boss foot: −7 µm at q 10° from a 45 µm sideways deflection, nothing on the
+  floor) the normals-only move is capped and lifts the floor by 2–3 µm, while −δ realises both.
+  Errors without these columns (measured residuals) are corrected along the normals alone.
+  Measured (``bench/closed_loop_vm.py``, ``bench/closed_loop_pipeline_samples.py``; error RMS
+  after 3 rounds in % of before, vectors against normals only): cylinder 10.9 against 11.7 %,
+  sample pocket wall 20.3 against 17.5 %, boss foot 70.6 against 48.8 %. At the boss foot the
+  deflection of the heavy cuts changes with the sideways moves (40 µm, alternating in sign from
+  vertex to vertex; 71 clipped vertices against 19): the rounds do not contract there. Hence off
+  until the rounds are damped for it.
 - Vertices inside a pass that merges several short blocks get the error of that pass alone.
 - A pass without an error row (pruned, non-cutting, rapid) contributes nothing: a vertex between it
   and a predicted pass follows the predicted pass; a vertex with no predicted pass on either side

@@ -21,8 +21,8 @@ For the generating point C of a pass (``generating``: φ_C, q_C, n_C) and each f
   pass itself but near the ends of passes shorter than a revolution's feed).
 - The deflection vector (dx, dy, 0)(θ_C) of the passage that leaves C is kept (``defl_x_um``,
   ``defl_y_um``): its part along n is in the error, its tangential part shifts the cusps between
-  rows and is what ``correct`` needs to put the tool back where it belongs (not only the surface
-  along n).
+  rows; ``correct.deflection_vector`` undoes it as a vector (the tool put back where it
+  belongs, not only the surface along n).
 - Shape error: the tool profile table (claim 2, ``tool.profile``: CSV ``contact_deg,error_um``,
   error_um > 0 = the tool is smaller than nominal there = material left), linearly interpolated at
   q_C and held constant beyond its first/last row. A profile measured as the envelope of the

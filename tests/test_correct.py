@@ -615,57 +615,55 @@ def test_merged_pass_interior_and_untouched_neighbours():
     assert moved.sum() == b1[k] - b0[k] + 2
 
 
+def _three_moves_corrected(name: bytes, moves: list, n, defl, err, vector: bool):
+    """A plunge then two cutting moves (no merging), corrected with errors ``err`` along ``n`` and
+    deflection vectors ``defl`` per cutting pass: (vertex moves µm, line numbers)."""
+    lines = [b"%", name, b"G90 G17 G21", b"T1 M6", b"S1000 M3", b"G0 X0.000 Y0.000 Z1.000", b"G1 Z0.000 F100",
+             *moves, b"G0 Z10.000", b"M30", b"%", b""]
+    blocks, _ = parse_program(b"\n".join(lines), "t", "p")
+    passes = split_blocks(blocks, dict(SPLIT, split=dict(SPLIT["split"], merge_max_mm=0.0)))
+    cut = passes.filter(pa.compute.not_equal(passes.column("motion"), 0))
+    assert cut.num_rows == 3
+    d = np.asarray(defl, float)
+    tab = _errors(cut, err, n).append_column("defl_x_um", pa.array(d[:, 0])).append_column("defl_y_um", pa.array(d[:, 1]))
+    c = correct_once(blocks, passes, tab, {"correct": {"deflection_vector": vector}})
+    mv = np.stack([c.column(f"{k}_new_mm").to_numpy() - c.column(f"{k}_mm").to_numpy() for k in "xyz"], 1) * 1000
+    return mv, c.column("line_no").to_numpy()
+
+
 def test_deflection_is_undone_as_a_vector_where_a_slope_pass_meets_a_floor_pass():
     # the sample's boss foot: a short pass on a 10° slope, then a floor pass, the tool pushed 45 µm
     # sideways (across the feed). Along the normals the slope shows −7.8 µm, the floor nothing; one
     # vertex cannot realise both along normals 10° apart within REFINE_MAX_RATIO, so the normals-only
     # move lifts the floor. Undoing the deflection vector realises both exactly.
-    lines = [b"%", b"O0011", b"G90 G17 G21", b"T1 M6", b"S1000 M3", b"G0 X0.000 Y0.000 Z1.000", b"G1 Z0.000 F100",
-             b"Y0.400", b"Y5.000", b"G0 Z10.000", b"M30", b"%", b""]
-    blocks, _ = parse_program(b"\n".join(lines), "t", "p")
-    passes = split_blocks(blocks, dict(SPLIT, split=dict(SPLIT["split"], merge_max_mm=0.0)))
-    cut = passes.filter(pa.compute.not_equal(passes.column("motion"), 0))
-    assert cut.num_rows == 3                                  # the plunge, the slope pass, the floor pass
     a = np.radians(10.0)
-    n = np.array([[0.0, 0.0, 1.0], [-np.sin(a), 0.0, np.cos(a)], [0.0, 0.0, 1.0]])
+    n = np.array([[0.0, 0.0, 1.0], [-np.sin(a), 0.0, np.cos(a)], [0.0, 0.0, 1.0]])   # plunge, slope, floor
     delta = np.array([45.0, 0.0, 0.0])                        # the tool's deflection, µm
-    shape = np.array([0.0, 0.0, 0.0])
-    e = n @ delta + shape                                     # 0, −7.81, 0
-    err = _errors(cut, e, n).append_column("defl_x_um", pa.array([delta[0]] * 3)).append_column(
-        "defl_y_um", pa.array([delta[1]] * 3))
-    moves = {}
-    for vec in (True, False):
-        c = correct_once(blocks, passes, err, {"correct": {"deflection_vector": vec}})
-        moves[vec] = np.stack([c.column(f"{k}_new_mm").to_numpy() - c.column(f"{k}_mm").to_numpy() for k in "xyz"], 1) * 1000
-    ln = c.column("line_no").to_numpy()
+    e = n @ delta                                             # 0, −7.81, 0
+    moves = {vec: _three_moves_corrected(b"O0011", [b"Y0.400", b"Y5.000"], n, [delta] * 3, e, vec)
+             for vec in (True, False)}
+    ln = moves[True][1]
     shared = int(np.flatnonzero(ln == 8)[0])                  # end of the slope pass, start of the floor pass
-    m = moves[True][shared]
+    m = moves[True][0][shared]
     np.testing.assert_allclose(m, -delta, atol=1e-9)          # the tool is put back where it belongs
     np.testing.assert_allclose([m @ n[1], m @ n[2]], [-e[1], -e[2]], atol=1e-9)   # both surfaces right
     # along the normals alone the floor under that vertex is lifted (the closed loop's +2–3 µm)
-    mn = moves[False][shared]
+    mn = moves[False][0][shared]
     assert mn @ n[2] > 1.0 and abs(mn @ n[1] + e[1]) > 1.0
     # a vertex whose passes are all on the floor moves by −δ too (no error along n there, but the
     # sideways shift of the cusps is undone)
-    np.testing.assert_allclose(moves[True][int(np.flatnonzero(ln == 9)[0])], -delta, atol=1e-9)
+    np.testing.assert_allclose(moves[True][0][int(np.flatnonzero(ln == 9)[0])], -delta, atol=1e-9)
 
 
 def test_deflection_vectors_that_differ_at_a_wall_corner_still_realise_both_errors():
     # two walls meeting at 90° (pass a along +x, wall normal +y; pass b along +y, wall normal −x),
     # each pass with its own deflection: −δ̄ alone would realise only half of each; the moves
     # along the normals take the rest, so both errors hold exactly (as without the vectors)
-    lines = [b"%", b"O0012", b"G90 G17 G21", b"T1 M6", b"S1000 M3", b"G0 X0.000 Y0.000 Z1.000", b"G1 Z0.000 F100",
-             b"X5.000", b"Y5.000", b"G0 Z10.000", b"M30", b"%", b""]
-    blocks, _ = parse_program(b"\n".join(lines), "t", "p")
-    passes = split_blocks(blocks, dict(SPLIT, split=dict(SPLIT["split"], merge_max_mm=0.0)))
-    cut = passes.filter(pa.compute.not_equal(passes.column("motion"), 0))
     n = np.array([[0.0, 1.0, 0.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
     d = np.array([[3.0, 12.0, 0.0], [3.0, 12.0, 0.0], [-20.0, 7.0, 0.0]])   # the second wall's along its feed: 7
     e = np.einsum("ij,ij->i", n, d) + np.array([0.0, 0.8, -0.5])            # + shape errors
-    err = _errors(cut, e, n).append_column("defl_x_um", pa.array(d[:, 0])).append_column("defl_y_um", pa.array(d[:, 1]))
-    c = correct_once(blocks, passes, err, {"correct": {"deflection_vector": True}})
-    mv = np.stack([c.column(f"{k}_new_mm").to_numpy() - c.column(f"{k}_mm").to_numpy() for k in "xyz"], 1) * 1000
-    m = mv[int(np.flatnonzero(c.column("line_no").to_numpy() == 8)[0])]    # the corner
+    mv, ln = _three_moves_corrected(b"O0012", [b"X5.000", b"Y5.000"], n, d, e, True)
+    m = mv[int(np.flatnonzero(ln == 8)[0])]                                  # the corner
     np.testing.assert_allclose([m @ n[1], m @ n[2]], [-e[1], -e[2]], atol=1e-9)
     assert m[2] == pytest.approx(0.0, abs=1e-12)                           # δ has no z: nothing up or down
 
