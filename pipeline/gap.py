@@ -220,7 +220,8 @@ def how_far(F: dict, res: dict, predictor: Optional[Predictor]) -> dict:
                 model[e.name] = e.params(b, th)
             else:
                 offsets += c
-        pred = predictor.at_points(F, model, test) if model else F["predicted_um"][test]
+        pred = (predictor.at_points(F, model, test) + np.broadcast_to(F.get("baseline_extra_um", 0.0), y.shape)[test]
+                if model else F["predicted_um"][test])
         after[test] = meas[test] - pred - offsets
         terms_after[test] = y[test] - terms
     res["rms_after_terms_um"] = _rms(terms_after)
@@ -695,7 +696,7 @@ def blind_cases(vm, passes: pa.Table, errors: Optional[pa.Table], tool: dict, pt
     geom = (pts + vm.R * nrm - [0.0, 0.0, vm.R], nrm)      # tool tip and normal at each point
     # reference part (no effect), as a shop calibrates on a test cut: the force-model scale s0 and
     # the model's floor (residual RMS beyond the probe noise) that no catalogue effect explains
-    from stages.gap import apply_baseline, noise_sigma
+    from stages.gap import apply_baseline, corner_floor, noise_sigma
     ref_sigma = float(np.mean(noise))
     err = vm.probe(pts, nrm, {}, ref_sigma, np.random.default_rng(seed + 7919))
     F0, _ = associate(_meas_table(ids, pts, nrm, err), passes, errors, tool, off_part_mm, deflection)
@@ -704,9 +705,11 @@ def blind_cases(vm, passes: pa.Table, errors: Optional[pa.Table], tool: dict, pt
     F0 = apply_baseline(F0, s0)
     if predictor is not None:
         predictor.scale = s0
+    corner = corner_floor(F0)
+    F0 = apply_baseline(F0, 1.0, corner)
     sig0 = noise_sigma(F0, F0["residual_um"])
     floor = float(math.sqrt(max(np.mean(F0["residual_um"] ** 2) - sig0 ** 2, 0.0)))
-    calibration = {"force_scale_s0": s0, "floor_um": floor, "reference_rms_um": float(np.sqrt(np.mean(F0["residual_um"] ** 2))),
+    calibration = {"force_scale_s0": s0, "corner_floor": corner, "floor_um": floor, "reference_rms_um": float(np.sqrt(np.mean(F0["residual_um"] ** 2))),
                    "reference_noise_um": ref_sigma, "noise_est_um": sig0}
     for ci, kinds_i in enumerate(plan_cases):
         if len(kinds_i) == 2:
@@ -716,7 +719,7 @@ def blind_cases(vm, passes: pa.Table, errors: Optional[pa.Table], tool: dict, pt
         sigma = float(rng.uniform(*noise))
         err = vm.probe(pts, nrm, truth, sigma, rng)
         F, rej = associate(_meas_table(ids, pts, nrm, err), passes, errors, tool, off_part_mm, deflection)
-        res = diagnose_points(apply_baseline(F, s0), None, floor, predictor)
+        res = diagnose_points(apply_baseline(F, s0, corner), None, floor, predictor)
         true_order = _true_order(truth, vm, pts, nrm)
         case = {"case": ci, "truth": truth, "true_order": true_order, "noise_um": sigma,
                 "true_rms_um": _true_sizes(truth, vm, pts, nrm) if len(truth) >= 2 else None,

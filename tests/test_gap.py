@@ -293,6 +293,27 @@ def test_servo_fit_recovers_the_virtual_machines_lag(rigid, sample, a_um, lam):
     assert p["a_um"] == pytest.approx(a_um, rel=0.03) and p["lambda_mm"] == pytest.approx(lam, rel=0.03)
 
 
+def test_corner_floor_taken_from_a_reference_part_leaves_the_other_effects(rigid, sample):
+    """A reference part whose residual near corners is a lag (the virtual machine's, +25 µm with
+    λ 0.3 mm, noise-free): ``corner_floor`` reads it back within 3 %, and as part of the baseline
+    it leaves of a part with that floor and a tool wear the wear alone (within 5 % of the floor's
+    RMS; the two are not exactly additive: the deepest tooth passage takes both)."""
+    from pipeline.gap import _meas_table
+    from stages.gap import apply_baseline, associate, corner_floor
+    passes, pts, nrm = sample
+    lag = {"servo_corner": {"a_um": 25.0, "lambda_mm": 0.3}}
+    wear = {"tool_wear": {"rate_um_per_m": 40.0}}
+    y0 = _diff(rigid, sample, lag)
+    F0, _ = associate(_meas_table(np.arange(len(pts)), pts, nrm, y0), passes, None, TOOL)
+    a, lam = corner_floor(F0)
+    assert a == pytest.approx(25.0, rel=0.03) and lam == pytest.approx(0.3, rel=0.03)
+    y = _diff(rigid, sample, dict(lag, **wear))
+    F, _ = associate(_meas_table(np.arange(len(pts)), pts, nrm, y), passes, None, TOOL)
+    left = apply_baseline(F, 1.0, (a, lam))["residual_um"]
+    only_wear = _diff(rigid, sample, wear)
+    assert np.sqrt(np.mean((left - only_wear) ** 2)) < 0.05 * np.sqrt(np.mean(y0 ** 2))
+
+
 def test_detection_limit_of_wear_next_to_a_drift_is_the_collinear_remainder(sample):
     """The stated detection limit of tool wear next to a chosen thermal drift, against this test's
     own least squares: the part of the wear signature (∝ L) a drift n·A·(1 − e^(−t/τ)) cannot
