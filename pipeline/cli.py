@@ -180,11 +180,14 @@ def simulate(workflow, program, effects, noise_um, seed, plan, out):
 @click.argument("workflow", type=click.Path(dir_okay=False))
 @click.option("--measurements", required=True, type=click.Path(exists=True, dir_okay=False))
 @click.option("--out", "out", type=click.Path(file_okay=False), help="Output directory (default: workflow's `output`).")
-def diagnose(workflow, measurements, out):
+@click.option("--reference", type=click.Path(exists=True, dir_okay=False),
+              help="Measurement of a reference part with no effect to find (same program and plan): "
+                   "calibrates the force-model scale, the corner floor and the model floor, as the blind check does.")
+def diagnose(workflow, measurements, out, reference):
     """Sim-to-real gap: where, which unmodelled effect, how far it shrinks (held-out)."""
     from pipeline.gap import diagnose_cmd
     try:
-        s = diagnose_cmd(workflow, measurements, out)
+        s = diagnose_cmd(workflow, measurements, out, reference=reference)
     except (WorkflowError, InputError) as e:
         click.echo(f"error: {e}", err=True)
         sys.exit(2)

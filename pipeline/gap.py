@@ -314,7 +314,29 @@ def _one_blas_thread():
     return threadpool_limits(limits=1, user_api="blas")
 
 
-def diagnose_cmd(workflow: str, measurements: str, out: Optional[str] = None) -> dict:
+def calibrate(F0: dict, predictor: Optional[Predictor] = None) -> dict:
+    """Calibration on a reference part measured without any effect to find (a test cut on a warm,
+    checked machine with a measured tool): the force-model scale s0 (least squares of the
+    residual on the predicted deflection), the prediction's floor near path corners as the servo
+    lag it reads as (``stages.gap.corner_floor``), and the model floor left (residual RMS beyond the
+    probe noise). With a ``predictor`` s0 becomes its baseline; ``stages.gap.apply_baseline``
+    applies s0 and the corner floor to a measurement, the floor goes to the diagnosis's size test."""
+    from stages.gap import apply_baseline, corner_floor, noise_sigma
+    d = F0["pred_deflection_um"]
+    s0 = float(1.0 + np.dot(d, F0["residual_um"]) / np.dot(d, d)) if np.dot(d, d) > 0 else 1.0
+    F0 = apply_baseline(F0, s0)
+    if predictor is not None:
+        predictor.scale = s0
+    corner = corner_floor(F0)
+    F0 = apply_baseline(F0, 1.0, corner)
+    sig0 = noise_sigma(F0, F0["residual_um"])
+    floor = float(math.sqrt(max(np.mean(F0["residual_um"] ** 2) - sig0 ** 2, 0.0)))
+    return {"force_scale_s0": s0, "corner_floor": corner, "floor_um": floor, "n_points": int(len(F0["residual_um"])),
+            "reference_rms_um": float(np.sqrt(np.mean(F0["residual_um"] ** 2))), "noise_est_um": sig0}
+
+
+def diagnose_cmd(workflow: str, measurements: str, out: Optional[str] = None,
+                 reference: Optional[str] = None) -> dict:
     from stages.gap import associate, gap_effects_table, gap_points_table
     t0 = time.perf_counter()
     wf, base = load_workflow(workflow)
@@ -329,7 +351,18 @@ def diagnose_cmd(workflow: str, measurements: str, out: Optional[str] = None) ->
     gdir = outdir / "gap"
     gdir.mkdir(parents=True, exist_ok=True)
     predictor = make_predictor(tabs, wf, tool, workdir=gdir / "folds")
-    res = diagnose_points(F, spec.noise_um, predictor=predictor)
+    calibration, floor = None, 0.0
+    if reference:
+        # the same calibration the blind check proves the diagnosis with (``calibrate``)
+        from stages.gap import apply_baseline
+        ref, _, _ = read_points(reference, spec)
+        F0, _ = associate(ref, tabs["passes"], tabs.get("errors"), tool, spec.off_part_mm, tabs.get("deflection"))
+        calibration = dict(calibrate(F0, predictor), file=str(reference))
+        F = apply_baseline(F, calibration["force_scale_s0"], calibration["corner_floor"])
+        floor = calibration["floor_um"]
+    res = diagnose_points(F, spec.noise_um, floor, predictor=predictor)
+    if calibration is not None:
+        res["calibration"] = calibration
     t2 = time.perf_counter()
     if predictor is not None and any(k in HOW_ADDED for k in res["params"]):
         # the model with the winning effects, fitted on all points: profile table and errors re-predicted
@@ -362,7 +395,7 @@ def public_summary(res: dict) -> dict:
             "sigma_um", "n_points", "n_blocks",
             "rms_before_um", "rms_after_um", "p95_before_um", "p95_after_um", "max_before_um", "max_after_um",
             "shrink", "shrink_where_acting", "ranking", "ambiguous_with",
-            "detection_limits", "beyond_limits")  # after: held-out, effects added to the simulation
+            "detection_limits", "beyond_limits", "calibration")  # after: held-out, effects added to the simulation
     out = {k: res[k] for k in keys if k in res}
     out["held_out"] = "K-fold over spatial blocks: every point predicted by the fit without its block"
     out["model_update"] = model_update(res["params"])
@@ -694,23 +727,13 @@ def blind_cases(vm, passes: pa.Table, errors: Optional[pa.Table], tool: dict, pt
     results = []
     t_start = time.perf_counter()
     geom = (pts + vm.R * nrm - [0.0, 0.0, vm.R], nrm)      # tool tip and normal at each point
-    # reference part (no effect), as a shop calibrates on a test cut: the force-model scale s0 and
-    # the model's floor (residual RMS beyond the probe noise) that no catalogue effect explains
-    from stages.gap import apply_baseline, corner_floor, noise_sigma
+    # reference part (no effect), as a shop calibrates on a test cut (``calibrate``)
+    from stages.gap import apply_baseline
     ref_sigma = float(np.mean(noise))
     err = vm.probe(pts, nrm, {}, ref_sigma, np.random.default_rng(seed + 7919))
     F0, _ = associate(_meas_table(ids, pts, nrm, err), passes, errors, tool, off_part_mm, deflection)
-    d = F0["pred_deflection_um"]
-    s0 = float(1.0 + np.dot(d, F0["residual_um"]) / np.dot(d, d)) if np.dot(d, d) > 0 else 1.0
-    F0 = apply_baseline(F0, s0)
-    if predictor is not None:
-        predictor.scale = s0
-    corner = corner_floor(F0)
-    F0 = apply_baseline(F0, 1.0, corner)
-    sig0 = noise_sigma(F0, F0["residual_um"])
-    floor = float(math.sqrt(max(np.mean(F0["residual_um"] ** 2) - sig0 ** 2, 0.0)))
-    calibration = {"force_scale_s0": s0, "corner_floor": corner, "floor_um": floor, "reference_rms_um": float(np.sqrt(np.mean(F0["residual_um"] ** 2))),
-                   "reference_noise_um": ref_sigma, "noise_est_um": sig0}
+    calibration = dict(calibrate(F0, predictor), reference_noise_um=ref_sigma)
+    s0, corner, floor = calibration["force_scale_s0"], calibration["corner_floor"], calibration["floor_um"]
     for ci, kinds_i in enumerate(plan_cases):
         if len(kinds_i) == 2:
             truth = _draw_pair(rng, kinds_i, pool, vm, pts, nrm, ctx)

@@ -731,6 +731,18 @@ def test_cli_run_simulate_diagnose_end_to_end_on_two_rows(tmp_path):
     eff = pq.read_table(tmp_path / "out" / "tables" / "gap_effects" / "m.parquet")
     assert pts.num_rows == s["n_points"] and eff.column("effect").to_pylist()[0] == "runout"
     assert json.loads(eff.column("params_se").to_pylist()[0]) == pytest.approx(se)
+    # with a reference part (no effect, another noise draw) the same calibration as the blind check's
+    r = run("simulate", tmp_path / "wf.yaml", "--noise-um", "0.3", "--seed", "4", "--plan", SAMPLE / "plan.csv",
+            "--out", tmp_path / "ref.csv")
+    assert r.exit_code == 0, r.output
+    r = run("diagnose", tmp_path / "wf.yaml", "--measurements", tmp_path / "m.csv", "--reference", tmp_path / "ref.csv",
+            "--out", tmp_path / "cal")
+    assert r.exit_code == 0, r.output
+    c = json.loads((tmp_path / "cal" / "gap" / "summary.json").read_text())
+    cal = c["calibration"]
+    assert cal["file"].endswith("ref.csv") and cal["n_points"] == s["n_points"] and 0.5 < cal["force_scale_s0"] < 2.0
+    assert c["effects"] == ["runout"] and abs(c["params"]["runout"]["e_um"] - 10.0) <= 1.0   # the truth alone
+    assert c["rms_after_um"] <= s["rms_after_um"] * 1.1
     bad = (tmp_path / "m.csv").read_text().splitlines()
     (tmp_path / "dup.csv").write_text("\n".join(bad + [bad[1]]) + "\n")
     r = CliRunner().invoke(main, ["diagnose", str(tmp_path / "wf.yaml"), "--measurements", str(tmp_path / "dup.csv")])
