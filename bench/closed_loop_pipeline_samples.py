@@ -16,7 +16,8 @@ walls and the boss, where the error is):
 3. the error is the probed surface minus the original program machined with the nominal tool on a
    rigid machine (cusps and feed marks, which no path correction removes, are not counted).
 
-    python3 bench/closed_loop_pipeline_samples.py [--out DIR] [--keep] [--prune DEG] [--max-move UM] [X0 X1 Y0 Y1 ...]
+    python3 bench/closed_loop_pipeline_samples.py [--out DIR] [--keep] [--prune DEG] [--max-move UM]
+        [--correct KEY=VALUE ...] [X0 X1 Y0 Y1 ...]
     python3 bench/closed_loop_pipeline_samples.py --whole [--out DIR] [--prune DEG]    (1–2 h)
 
 ``--whole`` runs the whole finishing program as written (no window cut, no band edges) and probes
@@ -72,7 +73,7 @@ def window_program(src: bytes, x0: float, x1: float, y0: float, y1: float) -> by
     return "\n".join(out).encode()
 
 
-def workflow(root: Path, max_iter: int, prune_deg=None, max_move_um=None) -> Path:
+def workflow(root: Path, max_iter: int, prune_deg=None, max_move_um=None, correct_opts=()) -> Path:
     import yaml
     wf = yaml.safe_load((ROOT / "workflows/mould.yaml").read_text())
     for k in ("stock", "nominal"):
@@ -85,6 +86,9 @@ def workflow(root: Path, max_iter: int, prune_deg=None, max_move_um=None) -> Pat
     wf["correct"] = {**wf["correct"], "max_iter": max_iter}
     if max_move_um is not None:
         wf["correct"]["max_move_um"] = float(max_move_um)
+    for kv in correct_opts:                      # e.g. deflection_vector=true, relax=0.5
+        k, v = kv.split("=", 1)
+        wf["correct"][k] = yaml.safe_load(v)
     if prune_deg is not None:
         wf["prune"] = {**wf.get("prune", {}), "min_contact_deg": float(prune_deg)}
     p = root / f"wf{max_iter}.yaml"
@@ -151,6 +155,8 @@ def main():
     ap.add_argument("--max-move", type=float, default=None,
                     help="clip of the vertex moves, µm; default: the sample workflow's correct.max_move_um")
     ap.add_argument("--whole", action="store_true", help="the whole program, probed over the whole part")
+    ap.add_argument("--correct", action="append", default=[], metavar="KEY=VALUE",
+                    help="a workflow `correct` option for both runs (repeatable), e.g. deflection_vector=true")
     ap.add_argument("window", nargs="*", type=float)
     args = ap.parse_args()
     wins = [tuple(args.window[i:i + 4]) for i in range(0, len(args.window), 4)] or list(WINDOWS)
@@ -168,7 +174,7 @@ def main():
         written, wall = {"original": band}, {}
         for mi in (1, 3):
             t0 = time.perf_counter()
-            r = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", str(workflow(root, mi, args.prune, args.max_move)),
+            r = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", str(workflow(root, mi, args.prune, args.max_move, args.correct)),
                                 "--workers", "1", "-q"], cwd=root, capture_output=True, text=True)
             wall[mi] = round(time.perf_counter() - t0, 1)
             if r.returncode != 0:
