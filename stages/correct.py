@@ -29,8 +29,9 @@ m = −(e_i n_i + e_j n_j), which realises both errors exactly.
   after 3 rounds in % of before, vectors against normals only): cylinder 10.9 against 11.7 %,
   sample pocket wall 20.3 against 17.5 %, boss foot 70.6 against 48.8 %. At the boss foot the
   deflection of the heavy cuts changes with the sideways moves (40 µm, alternating in sign from
-  vertex to vertex; 71 clipped vertices against 19): the rounds do not contract there. Hence off
-  until the rounds are damped for it.
+  vertex to vertex; 71 clipped vertices against 19): the rounds do not contract there, and
+  halving the rounds' steps (``correct.relax: 0.5``) does not help (wall 19.9 %, boss foot
+  94.7 %). Hence off.
 - Vertices inside a pass that merges several short blocks get the error of that pass alone.
 - A pass without an error row (pruned, non-cutting, rapid) contributes nothing: a vertex between it
   and a predicted pass follows the predicted pass; a vertex with no predicted pass on either side
