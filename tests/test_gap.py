@@ -596,6 +596,45 @@ def test_small_blind_check_names_effects_and_none(rigid, sample):
             assert m["effect"] in c["truth"] and m["hidden_up_to_um"] is not None and m["true_rms_um"] > 0
 
 
+
+def test_wear_next_to_a_force_scale_is_not_read_as_a_drift(tmp_path):
+    """A blind-check pair the diagnosis got wrong (seed 1795569132, case 81), re-run on the sample
+    job with its own prediction: a tool wear of 30.3 µm/m (3.5 µm RMS) and a force scale of 2.82
+    (1.8 µm RMS) at σ 0.64 µm. Forward selection chose a machine-geometry error, the force scale,
+    then a thermal drift 25 σ² better than the wear next to the geometry error; the backward check
+    then dropped the geometry error and the drift stayed. Judging the swaps again without it
+    (``stages.gap.settle``) names the truth, in its order of size."""
+    from pipeline.gap import _meas_table, _spec, _tool, calibrate, diagnose_points, make_predictor, run_tables
+    from pipeline.config import load_workflow
+    from stages.gap import apply_baseline, associate
+    from stages.virtual_machine import VirtualMachine
+    wf_text = (ROOT / "workflows" / "gap.yaml").read_text().replace("data_samples/", f"{ROOT}/data_samples/")
+    wf_path = tmp_path / "gap.yaml"
+    wf_path.write_text(wf_text.replace("output: runs/gap", f"output: {tmp_path / 'out'}"))
+    wf, base = load_workflow(str(wf_path))
+    spec = _spec(wf, base)
+    tabs, _, run = run_tables(str(wf_path), "errors")
+    passes = tabs["passes"]
+    tool = _tool(wf, passes)
+    vm = VirtualMachine(passes, tool, wf.material.model_dump(), wf.machine.model_dump(), run._static["stock"][0])
+    plan, _, _ = read_measurements(SAMPLE / "plan.csv", require_deviation=False)
+    pts = np.stack([plan.column(c).to_numpy() for c in ("x_mm", "y_mm", "z_mm")], 1)
+    nrm = np.stack([plan.column(c).to_numpy() for c in ("nx", "ny", "nz")], 1)
+    ids = np.arange(len(pts))
+    predictor = make_predictor(tabs, wf, tool, workdir=tmp_path / "profiles")
+
+    def measured(truth, sigma, seed):
+        err = vm.probe(pts, nrm, truth, sigma, np.random.default_rng(seed))
+        return associate(_meas_table(ids, pts, nrm, err), passes, tabs["errors"], tool, spec.off_part_mm,
+                         tabs["deflection"])[0]
+    cal = calibrate(measured({}, 0.65, 1795569132 + 7919), predictor)
+    truth = {"tool_wear": {"rate_um_per_m": 30.341115229078135}, "force_scale": {"scale": 2.8222396060741275}}
+    F = apply_baseline(measured(truth, 0.64, 1001), cal["force_scale_s0"], cal["corner_floor"])
+    res = diagnose_points(F, None, cal["floor_um"], predictor)
+    assert res["effects"] == ["tool_wear", "force_scale"]
+    assert res["params"]["tool_wear"]["rate_um_per_m"] == pytest.approx(30.34, rel=0.2)
+    assert res["params"]["force_scale"]["scale"] == pytest.approx(2.822, rel=0.2)
+
 class _LinearVM:
     """Stand-in for the virtual machine whose effects add known patterns (for the pair generator)."""
     def __init__(self, n=200):
