@@ -318,9 +318,10 @@ def calibrate(F0: dict, predictor: Optional[Predictor] = None) -> dict:
     """Calibration on a reference part measured without any effect to find (a test cut on a warm,
     checked machine with a measured tool): the force-model scale s0 (least squares of the
     residual on the predicted deflection), the prediction's floor near path corners as the servo
-    lag it reads as (``stages.gap.corner_floor``), and the model floor left (residual RMS beyond the
-    probe noise). With a ``predictor`` s0 becomes its baseline; ``stages.gap.apply_baseline``
-    applies s0 and the corner floor to a measurement, the floor goes to the diagnosis's size test."""
+    lag it reads as (``stages.gap.corner_floor``: None unless the reference pins it to 3 standard
+    errors), and the model floor left (residual RMS beyond the probe noise). With a ``predictor`` s0
+    becomes its baseline; ``stages.gap.apply_baseline`` applies s0 and the corner floor to a
+    measurement, the floor goes to the diagnosis's size test."""
     from stages.gap import apply_baseline, corner_floor, noise_sigma
     d = F0["pred_deflection_um"]
     s0 = float(1.0 + np.dot(d, F0["residual_um"]) / np.dot(d, d)) if np.dot(d, d) > 0 else 1.0

@@ -831,6 +831,9 @@ def apply_baseline(F: dict, force_scale: float, corner: Optional[tuple] = None) 
     return F
 
 
+FLOOR_Z = 3.0   # the corner floor is taken when its amplitude is at least this many standard errors
+
+
 def corner_floor(F: dict) -> Optional[tuple]:
     """The prediction's floor near path corners on a reference part (no effect), as the servo lag it
     reads as: (a µm, λ mm), or None without corners.
@@ -843,7 +846,8 @@ def corner_floor(F: dict) -> Optional[tuple]:
     stated SE off; all 6 servo misses over 3 fresh blind-check seeds were lags of that sign).
     Taken from the reference it is part of the baseline, like the force scale: on that seed the
     servo misses went from 3 to 2 (the σ 0.3 µm case within 20 %); the ones left, at σ ≥ 0.6 µm,
-    are still lags of that sign."""
+    are still lags of that sign. None when the reference does not pin it: amplitude below
+    ``FLOOR_Z`` standard errors (``param_uncertainty`` at the polished fit)."""
     cand = [e for e in catalogue(F) if e.name == "servo_corner"]
     if not cand:
         return None
@@ -851,9 +855,19 @@ def corner_floor(F: dict) -> Optional[tuple]:
     ones = np.ones(len(y), bool)
     th, beta = fit_effects(F, y, ones, [], cand[0])
     chosen, beta = refine_servo(F, y, ones, [(cand[0], th)], beta)
-    (e, t), = chosen
-    lam, a = (float(t[0]), float(t[1])) if len(t) == 2 else (float(t[0]), float(beta[0]))
-    return (a, lam) if np.isfinite(a) and a != 0 else None
+    chosen, beta = polish_fit(F, y, chosen, beta)
+    p = _params_of(chosen, beta)["servo_corner"]
+    a, lam = p["a_um"], p["lambda_mm"]
+    if not (np.isfinite(a) and a != 0):
+        return None
+    # taken only when the reference pins it: read from the few points within ~0.1 mm of the
+    # corners, one reference at σ 0.65 µm on the sample plan gives it to ±35–140 µm (+28 µm, λ 0.037
+    # mm from one draw, +75 µm, λ 0.057 mm from another, +37 µm, λ 0.048 mm noise-free); subtracted
+    # from every case, the second made 2 of 8 no-effect cases of its blind check claim a lag of −17 µm
+    se = param_uncertainty(F, y, chosen, beta, noise_sigma(F, y))["se"].get("servo_corner", {}).get("a_um")
+    if se is None or not abs(a) >= FLOOR_Z * se:
+        return None
+    return (a, lam)
 
 
 def diagnose(F: dict, noise_um: Optional[float] = None, floor_um: float = 0.0) -> dict:
