@@ -144,6 +144,19 @@ def path_chains(tip0: np.ndarray, tip1: np.ndarray, usable: np.ndarray):
     return s0, np.where(usable, chain, -1)
 
 
+def reaches_inside(t: np.ndarray, ta: np.ndarray, tb: np.ndarray) -> np.ndarray:
+    """Whether a neighbouring move reaches the point from inside its extent (bool per pair).
+
+    A move whose tool is nearest the point at one of its own ends (``t`` clamped at 0 with the
+    window starting at the move's start ``ta`` = 0, or at 1 with ``tb`` = 1: the point lies beyond
+    the move) reaches it only from the vertex it shares with the adjacent move of the chain. There
+    the tool's deflection cannot change (the modes take 1/(ζ·ωn), ≈ 6 ms or 1.5 tooth passages on
+    the sample, to follow a change of force), so that move's own deflection does not act on the
+    point: the adjacent move's passages, which do reach it, carry it.
+    """
+    return ~(((t <= 0.0) & (ta <= 1e-12)) | ((t >= 1.0) & (tb >= 1.0 - 1e-12)))
+
+
 def passage_pairs(owner: np.ndarray, s_c: np.ndarray, reach: np.ndarray, s0: np.ndarray,
                   length: np.ndarray, chain: np.ndarray, known: np.ndarray):
     """Moves of the owner's chain (other than the owner) within ``reach`` of path position ``s_c``
