@@ -182,9 +182,10 @@ def associate(meas: pa.Table, passes: pa.Table, errors: Optional[pa.Table], tool
 # stage's ``_deepest_passage`` still counts them: with the same rule there, the sample's boss-foot
 # closed loop went from 63.0 % / 48.8 % of before (1 / 3 rounds) to 68.5 % / 88.8 %
 # (``bench/closed_loop_pipeline_samples.py --prune 0 68 78 41 45``). Measured on the gap job's
-# effect-free reference part (noise-free, ``bench/gap_reference_floor.py``): prediction error 0.139 → 0.122 µm RMS, beyond 1 mm of a corner
-# 0.112 → 0.080 µm (max 1.25 → 0.53 µm), mean within 0.25 mm +0.17 → +0.08 µm, and the floor no
-# longer reads as a servo lag (+22 µm, λ 0.05 mm → +0.08 µm).
+# effect-free reference part (noise-free, ``bench/gap_reference_floor.py``): prediction error
+# 0.139 → 0.122 µm RMS, beyond 1 mm of a corner 0.112 → 0.080 µm (max 1.25 → 0.53 µm), mean within
+# 0.25 mm +0.17 → +0.08 µm, and the floor no longer reads as a servo lag (+22 µm, λ 0.05 mm →
+# +0.08 µm).
 PASS_END_PASSAGES = False
 
 
