@@ -99,7 +99,7 @@ def workflow(root: Path, max_iter: int, prune_deg=None, max_move_um=None, correc
 Q_BANDS = ((0.0, 30.0, "q<30"), (30.0, 60.0, "q30-60"), (60.0, 91.0, "q>=60"))
 
 
-def vm_errors(window, programs: dict, wf: dict) -> dict:
+def vm_errors(window, programs: dict, wf: dict, spacing_mm: float = 0.1) -> dict:
     import pyarrow as pa
     from stages.parse import parse_program
     from stages.split import split_blocks
@@ -126,7 +126,7 @@ def vm_errors(window, programs: dict, wf: dict) -> dict:
                               {"frf": frf}, wf["stock"])
 
     ideal_vm = machine(programs["original"], True)
-    pts, nrm = grid_plan(ideal_vm, 0.1)
+    pts, nrm = grid_plan(ideal_vm, spacing_mm)
     ok = (pts[:, 0] >= x0) & (pts[:, 0] < x1) & (pts[:, 1] >= y0) & (pts[:, 1] < y1)
     pts, nrm = pts[ok], nrm[ok]
     if len(pts) == 0:
@@ -157,6 +157,8 @@ def main():
     ap.add_argument("--whole", action="store_true", help="the whole program, probed over the whole part")
     ap.add_argument("--correct", action="append", default=[], metavar="KEY=VALUE",
                     help="a workflow `correct` option for both runs (repeatable), e.g. deflection_vector=true")
+    ap.add_argument("--workers", type=int, default=1, help="Dask workers of the pipeline runs")
+    ap.add_argument("--spacing", type=float, default=0.1, help="probe spacing along the passes, mm")
     ap.add_argument("window", nargs="*", type=float)
     args = ap.parse_args()
     wins = [tuple(args.window[i:i + 4]) for i in range(0, len(args.window), 4)] or list(WINDOWS)
@@ -175,7 +177,7 @@ def main():
         for mi in (1, 3):
             t0 = time.perf_counter()
             r = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", str(workflow(root, mi, args.prune, args.max_move, args.correct)),
-                                "--workers", "1", "-q"], cwd=root, capture_output=True, text=True)
+                                "--workers", str(args.workers), "-q"], cwd=root, capture_output=True, text=True)
             wall[mi] = round(time.perf_counter() - t0, 1)
             if r.returncode != 0:
                 raise SystemExit(r.stdout + r.stderr)
@@ -183,7 +185,7 @@ def main():
         run = json.loads((root / "out" / "run.json").read_text())
         rounds = run.get("correct_rounds", {}).get("band", [])
         t0 = time.perf_counter()
-        res = vm_errors(w, written, yaml.safe_load((root / "wf1.yaml").read_text()))
+        res = vm_errors(w, written, yaml.safe_load((root / "wf1.yaml").read_text()), args.spacing)
         if res is None:
             print(f"window x {w[0]:g}–{w[1]:g}, y {w[2]:g}–{w[3]:g}: no probe point of the plan in it, skipped")
             continue
