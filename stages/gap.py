@@ -16,9 +16,9 @@
    neighbouring points along the path, robust), exceeds the χ² quantile at ``ALPHA`` for its number of
    parameters, and where it acts the RMS it explains beyond the effects already chosen (or, when its
    signature is nearly collinear with theirs, its own fitted contribution) reaches half of hypot(σ,
-   model floor) (the floor is 0 unless a reference part measured it). Greedy (at most ``MAX_EFFECTS``): the best significant
-   effect is added — a simpler one when the richer one is not better by the χ² margin of its extra
-   parameters — with the nonlinear parameters of those already chosen re-fitted; then a swap pass
+   model floor) (the floor is 0 unless a reference part measured it). Greedy (at most
+   ``MAX_EFFECTS``): the best significant effect is added — a simpler one when the richer one is
+   not better by the χ² margin of its extra parameters — with the nonlinear parameters of those already chosen re-fitted; then a swap pass
    and a backward check (every kept effect must still pass both tests given the others), repeated
    while the check drops an effect (``settle``). An effect
    whose addition takes a fit beyond a real machine's limits (``LIMITS``: two effects cancelling
@@ -1452,10 +1452,11 @@ def detection_limits(F, chosen: list, cat: list, sigma: float, floor_um: float =
     claims it only when it passes both tests of ``diagnose``: n·(1 − ρ²)·r²/σ² beyond the χ²
     quantile of G's parameter count, and the size test (``collinear_size``): √(n·(1 − ρ²)·r²/support)
     ≥ ½·hypot(σ, floor), support = the points where v exceeds a tenth of its peak, or when ρ ≥
-    ``AMBIGUOUS_RHO`` its own RMS where it acts, r·√(n/support), ≥ ½·hypot(σ, floor). ``hidden_up_to_um`` is the
-    larger r at which either fails, maximised over G's signatures; ``correlation`` is that signature's ρ and
-    ``masked_by`` the chosen effect whose own signatures correlate most with it. A nearly collinear
-    pair on the part (ρ → 1) makes the limit large: the data cannot tell the two effects apart.
+    ``AMBIGUOUS_RHO`` its own RMS where it acts, r·√(n/support), ≥ ½·hypot(σ, floor).
+    ``hidden_up_to_um`` is the larger r at which either fails, maximised over G's signatures;
+    ``correlation`` is that signature's ρ and ``masked_by`` the chosen effect whose own signatures
+    correlate most with it. A nearly collinear pair on the part (ρ → 1) makes the limit large: the
+    data cannot tell the two effects apart.
     """
     from scipy.stats import chi2
     n = len(F["q_deg"])
