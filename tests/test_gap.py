@@ -683,8 +683,9 @@ def test_wear_next_to_a_drift_is_named_with_it(sample_vm):
     µm/m (3.5 µm RMS) and a thermal drift (−7.9, −1.5, −0.7) µm, τ 10.2 s (1.7 µm RMS), σ 0.85 µm.
     On this plan's normals the wear lies along a drift at correlation 0.998: the drift alone
     stretched its τ to 150 s to mimic the wear's ramp, and the wear then explained only 0.3 µm
-    beyond it (held-out gain 87 σ², significant). Fitted together they come out at the truth; the
-    size test now also takes the effect's own contribution (``stages.gap.acting_rms``)."""
+    beyond it (held-out gain 87 σ², significant). Fitted together they come out at the truth; for
+    a candidate this collinear the size test takes its own contribution
+    (``stages.gap.collinear_size``)."""
     truth = {"tool_wear": {"rate_um_per_m": 30.765},
              "thermal_drift": {"ax_um": -7.908, "ay_um": -1.459, "az_um": -0.742, "tau_s": 10.176}}
     res = _diagnosed(sample_vm, truth, 0.847, 1000)
