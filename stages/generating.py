@@ -55,8 +55,8 @@ from stages.cut_filter import (PASSES_PER_DRAW, coarse_tolerance, fine_tolerance
 from stages.render import Scene, Snapshot, View
 
 NAME = "generating"
-VERSION = "10"
-INPUTS = ("passes", "stock", "cut_filter", "angle_prune")
+VERSION = "11"
+INPUTS = ("passes", "stock", "cut_filter", "angle_prune", "nominal")
 OUTPUTS = ("generating", "engagement")
 PARAMS = ("tool", "render")
 # The engine runs a program's predictions as this many shards on separate workers (each shard
@@ -66,6 +66,12 @@ SHARDS = 4
 
 ID_W, ID_T1, ID_T2, ID_M = 0, 1, 2, 3
 STEEP_DEG = 60.0          # claim 6: re-render along the normal above this contact angle
+# with the design model given (workflow ``nominal``), surviving pixels farther than this from it are
+# rest material the program leaves for another (a pass down a wall into a pocket corner rides over
+# the stock the semi-finishing left there, 0.5-1.7 mm off the model on the sample), not the design
+# surface the pass finishes; the generating point is taken on the design surface where the pass
+# leaves any. Well under the smallest allowance (0.2 mm), over cusps, CAM and render tolerance.
+DESIGN_TOL_MM = 0.08
 PASSES_PER_BATCH = 8          # view-correction windows per render
 M_WINDOWS_PER_BATCH = 256     # from-below windows of M per render (bounds the images in memory)
 N_LAYERS = 5
@@ -283,6 +289,24 @@ def own_path_gap(shape, f, tol):
     return np.maximum(0.0, np.sqrt(20.0 * rc * tol) - f)
 
 
+def _on_design(design, view, M, mask, tol_mm=DESIGN_TOL_MM, n_check=64):
+    """The pixels of ``mask`` within ``tol_mm`` of the design surface; all of ``mask`` when the
+    design model is not given, or when none or all of them are (checked first on ``n_check``)."""
+    if design is None or not mask.any():
+        return mask
+    rows, cols = np.nonzero(mask)
+    pts = view.pixel_points(rows, cols, M.depth[mask])
+    probe = np.unique(np.linspace(0, len(pts) - 1, min(len(pts), n_check)).astype(np.int64))
+    if np.all(design.distance(pts[probe]) <= tol_mm):
+        return mask
+    near = design.distance(pts) <= tol_mm
+    if near.all() or not near.any():
+        return mask
+    out = np.zeros_like(mask)
+    out[rows[near], cols[near]] = True
+    return out
+
+
 def _angles(M, mask):
     """Mean contact and rotation angle of the pixels ``mask`` of layer M, read from the pixels.
 
@@ -306,8 +330,12 @@ def material_normal(q_deg, phi_deg, feed_deg):
 
 
 def generating(pg, shape, wp, renderer, px_per_mm, predict_idx, pred_tips, flutes,
-               n_phi=N_PHI, dz_mm=None, tol_mm=None):
+               n_phi=N_PHI, dz_mm=None, tol_mm=None, design=None):
     """Generating points and engagement for passes ``predict_idx`` at tips ``pred_tips``.
+
+    ``design``: the nominal model (:class:`stages.geometry.DesignSurface`) or None; with it, the
+    generating point of a pass that leaves both design surface and rest material is taken on the
+    design surface (:data:`DESIGN_TOL_MM`).
 
     Returns (gen: dict of numpy columns, eng: list of (E, dz_mm, feed_dir_xy)).
     """
@@ -358,16 +386,17 @@ def generating(pg, shape, wp, renderer, px_per_mm, predict_idx, pred_tips, flute
         del tris, q, phi, owner
         for v, M, k in zip(views, mimgs, ks):
             _from_below(gen, redo, k, v, M, final[tile_of[k]], shape, eng[k][0], dz, n_phi,
-                        s_p[k], f[k], gap[k], u[k], fd[k], path_lo, path_hi)
+                        s_p[k], f[k], gap[k], u[k], fd[k], path_lo, path_hi, design)
     _view_correction(gen, redo, pg, shape, wp, renderer, px_per_mm, cutting, bounds, mesh, coarse,
-                     pred_tips, s_p, f, fd, gap, u)
+                     pred_tips, s_p, f, fd, gap, u, design)
     steep = [k for k, _, _ in redo if gen["view"][k] == "normal"]
     _engagement_along_normal(eng, steep, gen, pg, shape, wp, renderer, px_per_mm, cutting, bounds, mesh,
                              pred_tips, pg.s0[snap], fd, tops, dz, n_phi, tol)
     return gen, eng
 
 
-def _from_below(gen, redo, k, view, M, fin, shape, E, dz, n_phi, s_p, f, gap, u, fd, path_lo, path_hi):
+def _from_below(gen, redo, k, view, M, fin, shape, E, dz, n_phi, s_p, f, gap, u, fd, path_lo, path_hi,
+                design=None):
     """Generating point of prediction ``k`` from its from-below window of M and the final surface."""
     on = M.id >= 0
     rows, cols = np.nonzero(on)
@@ -386,6 +415,7 @@ def _from_below(gen, redo, k, view, M, fin, shape, E, dz, n_phi, s_p, f, gap, u,
     surv[on] = near
     surv &= strip
     if surv.any():
+        surv = _on_design(design, view, M, surv)
         qk, phik = _angles(M, surv)
         _store(gen, k, view, M, surv, qk, phik, fd, "below")
         if qk > STEEP_DEG:
@@ -493,7 +523,7 @@ def _scan_program(pg, shape, wp, renderer, px_per_mm, mesh, predict_idx, tips, f
 
 
 def _view_correction(gen, redo, pg, shape, wp, renderer, px_per_mm, cutting, bounds, mesh, coarse,
-                     tips, s_p, f, fd, gap, u):
+                     tips, s_p, f, fd, gap, u, design=None):
     """Claim 6: look along the estimated normal, zoomed; zoom further where still nothing."""
     R = shape.radius_mm
     for b0 in range(0, len(redo), PASSES_PER_BATCH):
@@ -520,6 +550,7 @@ def _view_correction(gen, redo, pg, shape, wp, renderer, px_per_mm, cutting, bou
                 layers = [imgs[L * n2 + r] for L in range(N_LAYERS)]
                 surv, _ = _composite(layers, _own_path_strip(layers[3], shape, u[k], fd[k], f[k]))
                 if surv.any():
+                    surv = _on_design(design, ovs[r], layers[3], surv)
                     q, phi = _angles(layers[3], surv)
                     _store(gen, k, ovs[r], layers[3], surv, q, phi, fd[k], "normal")
                 elif gen["view"][k] == "none":
@@ -674,7 +705,8 @@ def run(inputs: dict, params: dict, shard: tuple[int, int] | None = None) -> dic
         chosen = chosen[i::n]
     idx = np.array([pos[p] for p in chosen], np.int64)
     tips = np.array([pred[p] for p in chosen], float).reshape(-1, 3)
-    gen, eng = generating(pg, shape, wp, renderer, ppm, idx, tips, int(t.get("flutes") or 2))
+    gen, eng = generating(pg, shape, wp, renderer, ppm, idx, tips, int(t.get("flutes") or 2),
+                          design=geo.load_design_surface(inputs.get("nominal")))
     m = len(idx)
     pid = pa.array([pg.program_id] * m, pa.string())
     g = pa.table({"program_id": pid, "pass_id": pa.array(chosen, pa.int32()),

@@ -488,6 +488,59 @@ def _from_trimesh(m) -> Workpiece:
     return Workpiece(tris, n, np.asarray(m.bounds, float))
 
 
+class DesignSurface:
+    """Distance of points to the nominal (design) model, exact where it matters.
+
+    Candidate faces are those of the nearest area-uniform surface samples (``spacing_mm`` apart);
+    the distance to each candidate is exact (closest point on the triangle). A point within a
+    sample spacing of the surface has its face among the candidates; farther points may get an
+    over-estimate, which only ever says "off the design surface" more firmly.
+    """
+
+    def __init__(self, mesh, spacing_mm: float = 0.2, k: int = 12):
+        import trimesh
+        from scipy.spatial import cKDTree
+        count = int(min(max(mesh.area / spacing_mm ** 2, 1000), 2_000_000))
+        pts, face = trimesh.sample.sample_surface(mesh, count, seed=0)
+        self._tree = cKDTree(pts)
+        self._face = np.asarray(face, np.int64)
+        self._tris = np.asarray(mesh.triangles, float)
+        self._k = min(k, count)
+
+    def distance(self, points) -> np.ndarray:
+        import trimesh
+        points = np.asarray(points, float).reshape(-1, 3)
+        if len(points) == 0:
+            return np.zeros(0)
+        _, nb = self._tree.query(points, k=self._k)
+        faces = self._face[nb]                                          # (n, k), with repeats
+        rep = np.repeat(points, faces.shape[1], axis=0)
+        cp = trimesh.triangles.closest_point(self._tris[faces.reshape(-1)], rep)
+        return np.linalg.norm(cp - rep, axis=1).reshape(faces.shape).min(axis=1)
+
+
+@lru_cache(maxsize=4)
+def _design_surface_cached(path: str, mtime: float) -> DesignSurface:
+    import trimesh
+    try:
+        m = trimesh.load(path, force="mesh")
+    except Exception as e:  # trimesh raises many types for bad files
+        raise InputError(f"{path}: cannot read nominal model: {e}") from None
+    if len(m.faces) == 0:
+        raise InputError(f"{path}: nominal model has no faces")
+    return DesignSurface(m)
+
+
+def load_design_surface(nominal) -> DesignSurface | None:
+    """The workflow's ``nominal`` model (a mesh path) as a :class:`DesignSurface`; None without one."""
+    if nominal is None or isinstance(nominal, DesignSurface):
+        return nominal
+    path = os.fspath(nominal)
+    if not os.path.exists(path):
+        raise InputError(f"{path}: nominal model not found")
+    return _design_surface_cached(os.path.abspath(path), os.path.getmtime(path))
+
+
 def load_workpiece(stock) -> Workpiece:
     """Stock from the engine's ``inputs['stock']``: a mesh path (STL/OBJ/PLY) or ``{'box': [...]}``."""
     if stock is None:
