@@ -489,15 +489,16 @@ def _from_trimesh(m) -> Workpiece:
 
 
 class DesignSurface:
-    """Distance of points to the nominal (design) model, exact where it matters.
+    """Distance of points to the nominal (design) model (no spatial-index extra needed).
 
-    Candidate faces are those of the nearest area-uniform surface samples (``spacing_mm`` apart);
-    the distance to each candidate is exact (closest point on the triangle). A point within a
-    sample spacing of the surface has its face among the candidates; farther points may get an
-    over-estimate, which only ever says "off the design surface" more firmly.
+    Candidate faces are those of the ``k`` nearest random surface samples (about ``spacing_mm``
+    apart); the distance to each candidate is exact (closest point on the triangle), so the result
+    is never under the true distance. Where the random samples miss the nearest face, a neighbour
+    gives it: within a sample spacing of a 1 mm-faceted sphere at most 10 µm over (the test),
+    against the 80 µm the generating stage asks of it.
     """
 
-    def __init__(self, mesh, spacing_mm: float = 0.2, k: int = 12):
+    def __init__(self, mesh, spacing_mm: float = 0.2, k: int = 16):
         import trimesh
         from scipy.spatial import cKDTree
         count = int(min(max(mesh.area / spacing_mm ** 2, 1000), 2_000_000))

@@ -151,3 +151,32 @@ def test_tool_params_and_workpieces(tmp_path):
         geo.load_workpiece(str(tmp_path / "missing.stl"))
     with pytest.raises(InputError, match="stock"):
         geo.load_workpiece(None)
+
+
+def test_design_surface_distance_matches_brute_force():
+    import trimesh
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=5.0)
+    mesh.apply_translation([1.0, -2.0, 0.5])
+    ds = geo.DesignSurface(mesh, spacing_mm=0.2)
+    rng = np.random.default_rng(3)
+    p, f = trimesh.sample.sample_surface(mesh, 400, seed=4)
+    q = p + rng.uniform(-0.5, 1.0, len(p))[:, None] * mesh.face_normals[f]
+    tris = mesh.triangles
+    ref = np.array([np.linalg.norm(trimesh.triangles.closest_point(tris, np.repeat(x[None], len(tris), 0)) - x,
+                                   axis=1).min() for x in q])
+    d = ds.distance(q)
+    assert np.all(d >= ref - 1e-9)                       # never under the true distance
+    near = ref < 0.2                                      # within a sample spacing
+    assert near.sum() > 50 and np.max((d - ref)[near]) < 0.01
+    assert np.median((d - ref)[near]) < 1e-9              # mostly the exact face
+    assert np.max(d - ref) < 0.05
+
+
+def test_design_surface_load_errors(tmp_path):
+    assert geo.load_design_surface(None) is None
+    with pytest.raises(InputError, match="not found"):
+        geo.load_design_surface(tmp_path / "missing.stl")
+    bad = tmp_path / "bad.stl"
+    bad.write_text("solid x\nthis is not an stl\n")
+    with pytest.raises(InputError, match="bad.stl"):
+        geo.load_design_surface(bad)

@@ -66,3 +66,45 @@ def test_gl_and_cpu_generating_points_agree_on_a_sample_window(sample):
     assert np.max(np.abs(g["contact_deg"] - c["contact_deg"])[found]) <= 0.2
     dphi = np.abs((g["rotation_deg"] - c["rotation_deg"] + 180.0) % 360.0 - 180.0)[found]
     assert np.max(dphi) <= 1.0
+
+
+def _nearest_face(mesh, points):
+    """Closest point and face normal on ``mesh`` for each point, by brute force over every face."""
+    import trimesh
+    tris = mesh.triangles
+    out = []
+    for x in np.asarray(points, float):
+        cp = trimesh.triangles.closest_point(tris, np.repeat(x[None], len(tris), 0))
+        d = np.linalg.norm(cp - x, axis=1)
+        out.append((float(d.min()), mesh.face_normals[int(np.argmin(d))]))
+    return out
+
+
+def test_generating_point_on_the_design_surface_in_a_pocket_corner(sample):
+    """Passes down the pocket walls next to a corner ride over the rest material the
+    semi-finishing left on the wall parallel to X (data_samples/README.md). Without the design
+    model their generating points lay on that rest material, 1.6-1.7 mm off the model and 45° off
+    the wall each pass finishes (the virtual machine's probe points on those walls face ±X); with
+    it, they lie on the model, along its face normal there."""
+    import trimesh
+    passes, wp = sample
+    shape, pg = geo.tool_from_params(TOOL), geo.pass_geometry(passes, TOOL)
+    r = _gl()
+    cf = cut_filter.cut_filter(pg, shape, wp, r, 20.0)
+    want = [4650, 4675, 4821, 4834]
+    idx = np.array([int(np.flatnonzero(pg.pass_id == w)[0]) for w in want])
+    assert cf["is_cutting"][idx].all()
+    tips = np.stack([cf["pred_x_mm"], cf["pred_y_mm"], cf["pred_z_mm"]], 1)[idx]
+    nominal = SAMPLES / "models" / "mould.stl"
+    mesh = trimesh.load(str(nominal), force="mesh")
+    for design, on_model in ((None, False), (geo.load_design_surface(str(nominal)), True)):
+        g, _ = generating.generating(pg, shape, wp, r, 20.0, idx, tips, 2, design=design)
+        c = np.stack([g["gen_x_mm"], g["gen_y_mm"], g["gen_z_mm"]], 1)
+        n = np.stack([g["nx"], g["ny"], g["nz"]], 1)
+        assert np.isfinite(c).all()
+        for (dist, fn), nk in zip(_nearest_face(mesh, c), n):
+            ang = np.degrees(np.arccos(np.clip(fn @ nk, -1, 1)))
+            if on_model:
+                assert dist < 0.1 and ang < 10.0, (dist, ang)
+            else:
+                assert dist > 0.3, dist
