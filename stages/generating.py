@@ -355,6 +355,8 @@ def generating(pg, shape, wp, renderer, px_per_mm, predict_idx, pred_tips, flute
            ("gen_x_mm", "gen_y_mm", "gen_z_mm", "rotation_deg", "contact_deg", "nx", "ny", "nz")}
     gen["n_px"] = np.zeros(m, np.int64)
     gen["view"] = np.array(["none"] * m, dtype=object)
+    gen["eng_c"] = np.full((m, 3), np.nan)      # engagement view (not in the table, see _store)
+    gen["eng_n"] = np.full((m, 3), np.nan)
     eng = [None] * m
     if m == 0:
         return gen, eng
@@ -415,9 +417,9 @@ def _from_below(gen, redo, k, view, M, fin, shape, E, dz, n_phi, s_p, f, gap, u,
     surv[on] = near
     surv &= strip
     if surv.any():
-        surv = _on_design(design, view, M, surv)
-        qk, phik = _angles(M, surv)
-        _store(gen, k, view, M, surv, qk, phik, fd, "below")
+        on = _on_design(design, view, M, surv)
+        qk, phik = _angles(M, on)
+        _store(gen, k, view, M, on, qk, phik, fd, "below", all_mask=surv)
         if qk > STEEP_DEG:
             redo.append((k, qk, phik))
     elif _redo_when_lost:
@@ -550,19 +552,37 @@ def _view_correction(gen, redo, pg, shape, wp, renderer, px_per_mm, cutting, bou
                 layers = [imgs[L * n2 + r] for L in range(N_LAYERS)]
                 surv, _ = _composite(layers, _own_path_strip(layers[3], shape, u[k], fd[k], f[k]))
                 if surv.any():
-                    surv = _on_design(design, ovs[r], layers[3], surv)
-                    q, phi = _angles(layers[3], surv)
-                    _store(gen, k, ovs[r], layers[3], surv, q, phi, fd[k], "normal")
+                    on = _on_design(design, ovs[r], layers[3], surv)
+                    q, phi = _angles(layers[3], on)
+                    # the engagement is read along the direction of every pixel the pass leaves,
+                    # rest material included: from below where anything survived there (this view
+                    # may be aimed at the design surface alone; along a pocket wall the rest
+                    # material on the wall across is then edge-on, and its engagement lost)
+                    keep = np.isfinite(gen["eng_n"][k]).all()
+                    ec, en = gen["eng_c"][k].copy(), gen["eng_n"][k].copy()
+                    _store(gen, k, ovs[r], layers[3], on, q, phi, fd[k], "normal", all_mask=surv)
+                    if keep:
+                        gen["eng_c"][k], gen["eng_n"][k] = ec, en
                 elif gen["view"][k] == "none":
                     still.append(todo[r])
             todo = still
 
 
-def _store(gen, slot, view, M, mask, q, phi, feed, how):
+def _store(gen, slot, view, M, mask, q, phi, feed, how, all_mask=None):
+    """Generating point of ``slot`` from the pixels ``mask``; the direction the engagement is read
+    along (:func:`_engagement_along_normal`) from ``all_mask`` (default ``mask``): every pixel the
+    pass leaves, rest material included, as before the design surface was told apart."""
     rows, cols = np.nonzero(mask)
     pts = view.pixel_points(rows, cols, M.depth[mask])
     c = pts.mean(0)
     nrm = material_normal(q, phi, feed)
+    if all_mask is not None and not np.array_equal(all_mask, mask):
+        ra, ca = np.nonzero(all_mask)
+        qa, pa_ = _angles(M, all_mask)
+        gen["eng_c"][slot] = view.pixel_points(ra, ca, M.depth[all_mask]).mean(0)
+        gen["eng_n"][slot] = material_normal(qa, pa_, feed)
+    else:
+        gen["eng_c"][slot], gen["eng_n"][slot] = c, nrm
     gen["gen_x_mm"][slot], gen["gen_y_mm"][slot], gen["gen_z_mm"][slot] = c
     gen["rotation_deg"][slot] = phi
     gen["contact_deg"][slot] = q
@@ -643,8 +663,7 @@ def _engagement_along_normal(eng, ks, gen, pg, shape, wp, renderer, px_per_mm, c
         kb = np.asarray(ks[b0:b0 + PASSES_PER_BATCH])
         views, grids = [], []
         for k in kb:
-            nrm = np.array([gen["nx"][k], gen["ny"][k], gen["nz"][k]])
-            c = np.array([gen["gen_x_mm"][k], gen["gen_y_mm"][k], gen["gen_z_mm"][k]])
+            nrm, c = gen["eng_n"][k], gen["eng_c"][k]
             P = _envelope_grid(shape, tips[k], fd[k], dz, n_phi, tops[k])
             probe = View(tuple(c), tuple(nrm), (0.0, 0.0, 1.0), 1.0, 1.0, px_per_mm, near, far)
             right, up, d = probe.basis()
