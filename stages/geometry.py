@@ -520,16 +520,24 @@ class DesignSurface:
         return np.linalg.norm(cp - rep, axis=1).reshape(faces.shape).min(axis=1)
 
 
-@lru_cache(maxsize=4)
-def _design_surface_cached(path: str, mtime: float) -> DesignSurface:
+def _read_mesh(path, what: str):
+    """A mesh file as a trimesh, with an InputError naming the file and ``what`` it is for."""
     import trimesh
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise InputError(f"{path}: {what} not found")
     try:
         m = trimesh.load(path, force="mesh")
     except Exception as e:  # trimesh raises many types for bad files
-        raise InputError(f"{path}: cannot read nominal model: {e}") from None
+        raise InputError(f"{path}: cannot read {what}: {e}") from None
     if len(m.faces) == 0:
-        raise InputError(f"{path}: nominal model has no faces")
-    return DesignSurface(m)
+        raise InputError(f"{path}: {what} has no faces")
+    return m
+
+
+@lru_cache(maxsize=4)
+def _design_surface_cached(path: str, mtime: float) -> DesignSurface:
+    return DesignSurface(_read_mesh(path, "nominal model"))
 
 
 def load_design_surface(nominal) -> DesignSurface | None:
@@ -552,16 +560,7 @@ def load_workpiece(stock) -> Workpiece:
         if "box" not in stock:
             raise InputError(f"stock: dict must have key 'box', got {sorted(stock)}")
         return box_workpiece(stock["box"])
-    import trimesh
-    path = os.fspath(stock)
-    if not os.path.exists(path):
-        raise InputError(f"{path}: stock model not found")
-    try:
-        m = trimesh.load(path, force="mesh")
-    except Exception as e:  # trimesh raises many types for bad files
-        raise InputError(f"{path}: cannot read mesh: {e}") from None
-    if len(m.faces) == 0:
-        raise InputError(f"{path}: mesh has no faces")
+    m = _read_mesh(stock, "stock model")
     if not m.is_watertight:
         # from-below rendering needs the material side of every face; warn via message only
         pass
