@@ -19,7 +19,7 @@ walls and the boss, where the error is):
     python3 bench/closed_loop_pipeline_samples.py [--out DIR] [--keep] [--prune DEG] [--max-move UM]
         [--correct KEY=VALUE ...] [X0 X1 Y0 Y1 ...]
     python3 bench/closed_loop_pipeline_samples.py --whole [--out DIR] [--prune DEG] [--workers 2] [--spacing MM]
-        (3+ h: one round of the pipeline 34 min on 2 workers at prune 0; the virtual machine 30–70 min
+        (3+ h: one round of the pipeline 21 min on 2 workers at prune 0; the virtual machine 21–70 min
         per program, 43,326 probe points at 0.1 mm)
 
 ``--whole`` runs the whole finishing program as written (no window cut, no band edges) and probes
