@@ -16,7 +16,10 @@ by the own path within f + gap of p: no other sweep and no stock lies in front o
 within ±(f + gap) is replaced by the closed-form strip of tool positions one tooth feed apart
 (:func:`_own_path_strip`). The surviving pixels are the surface this pass leaves; their mean is
 the generating point C, the mean of their φ (circular) and q values are its rotation and contact
-angle, and the surface normal (out of the material) at C follows from φ and q.
+angle, and the surface normal (out of the material) at C follows from φ and q. With the design
+model (workflow ``nominal``), a pass that leaves both the design surface and rest material (the
+semi-finishing's, on the far wall of a pocket corner) has C on the design surface: the pixels
+within :data:`DESIGN_TOL_MM` of the model.
 
 View correction (claim 6, paras 0075-0078): seen from below, a surface with contact angle q is
 foreshortened by cos q, so steep walls shrink below a pixel (the seed loses everything above
