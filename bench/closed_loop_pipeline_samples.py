@@ -19,8 +19,16 @@ walls and the boss, where the error is):
     python3 bench/closed_loop_pipeline_samples.py [--out DIR] [--keep] [--prune DEG] [--max-move UM]
         [--correct KEY=VALUE ...] [X0 X1 Y0 Y1 ...]
     python3 bench/closed_loop_pipeline_samples.py --whole [--out DIR] [--prune DEG] [--workers 2] [--spacing MM]
-        (3+ h: one round of the pipeline 21 min on 2 workers at prune 0; the virtual machine 21–70 min
-        per program, 43,326 probe points at 0.1 mm)
+        [--rounds 1] (one round of the pipeline 21 min on 2 workers at prune 0; the virtual machine
+        21–70 min per program, 43,326 probe points at 0.1 mm)
+
+``--rounds`` lists the round counts to run (default 1 and 3). The virtual machine's probes are kept
+under ``<out>/vm_cache`` keyed by a hash of the program text, the machine's own source, the
+workflow's tool, material, machine and stock, the window and the spacing: the rigid reference and
+the original program are machined once for any number of pipeline experiments. ``points.parquet``
+beside the summary holds every probe point with its error per program and the pass nearest it
+(the machine's own association) with that pass's predicted error from the first round's tables:
+where the prediction and the machine disagree.
 
 ``--whole`` runs the whole finishing program as written (no window cut, no band edges) and probes
 the whole finished surface; every run reports the RMS also by contact-angle band of the probe
@@ -101,8 +109,35 @@ def workflow(root: Path, max_iter: int, prune_deg=None, max_move_um=None, correc
 Q_BANDS = ((0.0, 30.0, "q<30"), (30.0, 60.0, "q30-60"), (60.0, 91.0, "q>=60"))
 
 
-def vm_errors(window, programs: dict, wf: dict, spacing_mm: float = 0.1) -> dict:
+def _vm_key(*parts) -> str:
+    """Content key of a virtual-machine probe: the machine's own code and every input it reads."""
+    import hashlib
+    h = hashlib.sha256()
+    for f in ("stages/virtual_machine.py", "stages/gap_geometry.py", "stages/parse.py", "stages/split.py"):
+        h.update((ROOT / f).read_bytes())
+    for part in parts:
+        h.update(part if isinstance(part, bytes) else json.dumps(part, sort_keys=True, default=str).encode())
+    return h.hexdigest()[:24]
+
+
+def _cached(cache: Path, key: str, compute):
+    """``compute()`` (a dict of arrays) once per key, kept as an .npz under ``cache``."""
+    f = cache / f"{key}.npz"
+    if f.is_file():
+        with np.load(f) as z:
+            return {k: z[k] for k in z.files}
+    out = compute()
+    cache.mkdir(parents=True, exist_ok=True)
+    tmp = cache / f".{key}.{os.getpid()}.npz"
+    np.savez(tmp, **out)
+    tmp.replace(f)                              # a killed run leaves no partial entry
+    return out
+
+
+def vm_errors(window, programs: dict, wf: dict, spacing_mm: float = 0.1, cache: Path | None = None,
+              dump: Path | None = None, predicted=None) -> dict:
     import pyarrow as pa
+    import pyarrow.parquet as pq
     from stages.parse import parse_program
     from stages.split import split_blocks
     from stages.virtual_machine import VirtualMachine, grid_plan
@@ -127,22 +162,46 @@ def vm_errors(window, programs: dict, wf: dict, spacing_mm: float = 0.1) -> dict
         return VirtualMachine(near(split_blocks(b, split)), nominal if rigid else wf["tool"], wf["material"],
                               {"frf": frf}, wf["stock"])
 
-    ideal_vm = machine(programs["original"], True)
-    pts, nrm = grid_plan(ideal_vm, spacing_mm)
-    ok = (pts[:, 0] >= x0) & (pts[:, 0] < x1) & (pts[:, 1] >= y0) & (pts[:, 1] < y1)
-    pts, nrm = pts[ok], nrm[ok]
+    inputs = [wf["tool"], wf["material"], wf["machine"], wf["split"], list(window), spacing_mm]
+    for f in (wf["stock"], wf["tool"].get("profile"), wf["machine"]["frf"].get("table")):
+        if f:
+            inputs.append(Path(f).read_bytes())
+
+    def reference():
+        vm = machine(programs["original"], True)
+        pts, nrm = grid_plan(vm, spacing_mm)
+        ok = (pts[:, 0] >= x0) & (pts[:, 0] < x1) & (pts[:, 1] >= y0) & (pts[:, 1] < y1)
+        pts, nrm = pts[ok], nrm[ok]
+        rows = vm._near_passes(pts + vm.R * nrm, 1)[0][:, 0] if len(pts) else np.zeros(0, np.int64)
+        return {"pts": pts, "nrm": nrm, "ideal": vm.probe(pts, nrm), "pass_id": vm.path.pass_id[rows]}
+
+    def probed(text):
+        def run():
+            return {"err": machine(text, False).probe(pts, nrm) - ideal}
+        return (_cached(cache, _vm_key(text, *inputs), run) if cache else run())["err"]
+
+    ref = _cached(cache, _vm_key(b"rigid", programs["original"], *inputs), reference) if cache else reference()
+    pts, nrm, ideal = ref["pts"], ref["nrm"], ref["ideal"]
     if len(pts) == 0:
         return None
-    ideal = ideal_vm.probe(pts, nrm)
     q = np.degrees(np.arccos(np.clip(nrm[:, 2], -1, 1)))
     out = {"points": int(len(pts)), "q_p50_deg": float(np.median(q)), "q_p90_deg": float(np.percentile(q, 90))}
+    cols = {"x_mm": pts[:, 0], "y_mm": pts[:, 1], "z_mm": pts[:, 2], "nx": nrm[:, 0], "ny": nrm[:, 1],
+            "nz": nrm[:, 2], "contact_deg": q, "pass_id": ref["pass_id"]}
+    if predicted is not None:                   # (pass_id, err_um) of the first round's prediction
+        pid, perr = predicted
+        lut = dict(zip(pid.tolist(), perr.tolist()))
+        cols["predicted_um"] = np.array([lut.get(int(i), np.nan) for i in ref["pass_id"]])
     for name, text in programs.items():
-        e = machine(text, False).probe(pts, nrm) - ideal
+        e = probed(text)
+        cols[f"err_{name.replace(' ', '_')}_um"] = e
         out[name] = {"rms_um": float(np.sqrt(np.mean(e ** 2))), "p95_abs_um": float(np.percentile(np.abs(e), 95)),
                      "max_abs_um": float(np.abs(e).max())}
         for lo, hi, band in Q_BANDS:
             m = (q >= lo) & (q < hi)
             out[name][band] = {"points": int(m.sum()), "rms_um": float(np.sqrt(np.mean(e[m] ** 2))) if m.any() else None}
+    if dump is not None:
+        pq.write_table(pa.table(cols), dump)
     return out
 
 
@@ -161,6 +220,7 @@ def main():
                     help="a workflow `correct` option for both runs (repeatable), e.g. deflection_vector=true")
     ap.add_argument("--workers", type=int, default=1, help="Dask workers of the pipeline runs")
     ap.add_argument("--spacing", type=float, default=0.1, help="probe spacing along the passes, mm")
+    ap.add_argument("--rounds", default="1,3", help="round counts of the corrected programs, comma-separated")
     ap.add_argument("window", nargs="*", type=float)
     args = ap.parse_args()
     wins = [tuple(args.window[i:i + 4]) for i in range(0, len(args.window), 4)] or list(WINDOWS)
@@ -171,12 +231,12 @@ def main():
     for w in wins:
         root = Path(args.out) / ("whole" if args.whole else "x%g-%g_y%g-%g" % w)
         if not args.keep:
-            shutil.rmtree(root, ignore_errors=True)
+            shutil.rmtree(root / "out", ignore_errors=True)
         (root / "nc").mkdir(parents=True, exist_ok=True)
         band = src if args.whole else window_program(src, w[0] - MARGIN_MM, w[1] + MARGIN_MM, w[2] - 1.0, w[3] + 1.0)
         (root / "nc" / "band.nc").write_bytes(band)
         written, wall = {"original": band}, {}
-        for mi in (1, 3):
+        for mi in sorted(int(r) for r in args.rounds.split(",")):
             t0 = time.perf_counter()
             r = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", str(workflow(root, mi, args.prune, args.max_move, args.correct)),
                                 "--workers", str(args.workers), "-q"], cwd=root, capture_output=True, text=True)
@@ -187,7 +247,12 @@ def main():
         run = json.loads((root / "out" / "run.json").read_text())
         rounds = run.get("correct_rounds", {}).get("band", [])
         t0 = time.perf_counter()
-        res = vm_errors(w, written, yaml.safe_load((root / "wf1.yaml").read_text()), args.spacing)
+        import pyarrow.parquet as pq
+        errs = pq.read_table(root / "out" / "tables" / "errors", columns=["pass_id", "err_um"])
+        wf_used = yaml.safe_load(next(root.glob("wf*.yaml")).read_text())
+        res = vm_errors(w, written, wf_used, args.spacing, cache=Path(args.out) / "vm_cache",
+                        dump=root / "points.parquet",
+                        predicted=(errs.column("pass_id").to_numpy(), errs.column("err_um").to_numpy()))
         if res is None:
             print(f"window x {w[0]:g}–{w[1]:g}, y {w[2]:g}–{w[3]:g}: no probe point of the plan in it, skipped")
             continue
