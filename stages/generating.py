@@ -58,7 +58,7 @@ from stages.cut_filter import (PASSES_PER_DRAW, coarse_tolerance, fine_tolerance
 from stages.render import Scene, Snapshot, View
 
 NAME = "generating"
-VERSION = "11"
+VERSION = "12"
 INPUTS = ("passes", "stock", "cut_filter", "angle_prune", "nominal")
 OUTPUTS = ("generating", "engagement")
 PARAMS = ("tool", "render")
@@ -690,8 +690,20 @@ def _engagement_along_normal(eng, ks, gen, pg, shape, wp, renderer, px_per_mm, c
             end = np.where(W.id >= 0, np.minimum(np.minimum(W.depth, T1.depth), T1n.depth), near)
             cols, rows, depth = views[i].project(grids[i])
             hh, ww = end.shape
-            inside = (cols >= 0) & (cols <= ww) & (rows >= 0) & (rows <= hh)
-            E = inside & (depth < bilinear(end, cols, rows) - tol)
+            ci = np.clip(np.floor(cols).astype(np.int64), 0, ww - 1)
+            ri = np.clip(np.floor(rows).astype(np.int64), 0, hh - 1)
+            # what this view decides: points within its depth range on rays where it found the
+            # end of the stock
+            seen = ((cols >= 0) & (cols <= ww) & (rows >= 0) & (rows <= hh) & (depth > near) & (depth < far)
+                    & (W.id[ri, ci] >= 0))
+            E = seen & (depth < bilinear(end, cols, rows) - tol)
+            # the rest is read from below, as for every other pass: in a pocket corner the rest
+            # material on the wall across lies beyond the depth range (sample pass 4822, down the
+            # x wall with the y wall's rest material at 20° of its side: 25 % less force, the
+            # deflection read 90 µm off the virtual machine's)
+            below = eng[k][0]
+            n_z = min(below.shape[0], E.shape[0])
+            E[:n_z] |= below[:n_z] & ~seen[:n_z]
             eng[k] = (_trim(E), dz, eng[k][2])
 
 

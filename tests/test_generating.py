@@ -197,6 +197,57 @@ def test_engagement_on_a_vertical_wall_matches_closed_form():
     assert not E[z >= H + 0.05].any()
 
 
+def test_engagement_across_a_slot_keeps_the_far_wall(tmp_path):
+    """The engagement of a steep pass read along its normal keeps the material the normal view
+    cannot see: the tool side-mills the wall x > 0 (radial depth a_e, normal −x) and rubs the far
+    wall of the slot x < x_far (radial depth a_far) with its other side, 2R away along the normal,
+    beyond that view's depth range (in a pocket corner the wall across is the same case). A later
+    pass takes the far wall deeper, so the generating point is on the near wall alone.
+
+    Closed form on the cylindrical side (angle θ from +x): near wall R cos θ > R − a_e, far wall
+    R cos θ < −(R − a_far).
+    """
+    import trimesh
+    R, a_e, a_far, H, f = 5.0, 0.05, 0.3, 8.0, 0.1
+    tool = {"type": "ball", "diameter_mm": 2 * R, "flutes": 2, "stickout_mm": 30.0}
+    xc = a_e - R
+    x_far = xc - R + a_far
+    boxes = [trimesh.creation.box(bounds=[[0, -30, -30], [30, 30, 0]]),
+             trimesh.creation.box(bounds=[[-40, -30, -30], [x_far, 30, 0]])]
+    stock = tmp_path / "slot.stl"
+    trimesh.util.concatenate(boxes).export(stock)
+    xs = [xc, xc - 0.5]                       # pass 1 takes the far wall 0.5 mm deeper, clear of the near one
+    passes = pa.table({
+        "program_id": ["slot"] * 2, "pass_id": pa.array([0, 1], pa.int32()),
+        "block_no": pa.array([0, 1], pa.int32()), "line_no": pa.array([1, 2], pa.int32()),
+        "motion": pa.array([1, 1], pa.int8()),
+        "x0_mm": xs, "y0_mm": [-20.0, 20.0], "z0_mm": [-H, -H], "x1_mm": xs, "y1_mm": [20.0, -20.0],
+        "z1_mm": [-H, -H], "feed_mm_min": [f * 2 * 1000.0] * 2, "spindle_rpm": [1000.0] * 2,
+        "tool": pa.array([1, 1], pa.int32()), "t_start_s": [0.0, 1.0], "t_end_s": [1.0, 2.0]})
+    params = {"tool": tool, "render": {"backend": "auto", "px_per_mm": 20}}
+    cf = pa.table({"pass_id": pa.array([0], pa.int32()), "is_cutting": [True],
+                   "pred_x_mm": [xc], "pred_y_mm": [0.0], "pred_z_mm": [-H]})
+    ap = pa.table({"pass_id": pa.array([0], pa.int32()), "predict": [True]})
+    out = generating.run({"passes": passes, "stock": str(stock), "cut_filter": cf, "angle_prune": ap}, params)
+    g = out["generating"].to_pylist()[0]
+    assert g["view"] == "normal" and abs(g["contact_deg"] - 90.0) < 3.0 and g["nx"] < -0.99
+    E, z, phi = unpack_engagement(out["engagement"].to_pylist()[0])
+    x = R * np.cos(np.radians(phi + 90.0))                       # feed +y: θ = φ + 90°
+    side = (z > R + 0.1) & (z < H - 0.1)
+    near_wall, far_wall = x > 0, x < 0
+    tol = generating.fine_tolerance(20)
+    far_inner, far_outer = (x < -(R - a_far) - tol).sum(), (x < -(R - a_far)).sum()
+    n_far = E[side][:, far_wall].sum(1)
+    print(f"\nfar wall: engaged cells per side level {np.median(n_far)} (closed form {far_inner} to {far_outer})")
+    assert far_inner > 20
+    # from below the far wall's edge is smeared over a pixel: ±2 angle bins at the ends
+    assert np.all((n_far >= far_inner - 2) & (n_far <= far_outer + 2))
+    assert not E[side][:, far_wall & (x > -(R - a_far) + 0.1)].any()
+    # the near wall as the normal view reads it (test above)
+    n_near = E[side][:, near_wall].sum(1)
+    assert np.all((n_near >= (x > R - a_e + tol).sum() - 1) & (n_near <= (x > R - a_e).sum() + 1))
+
+
 def _chain(points, motion=None):
     """PassGeometry of the polyline ``points`` (tips), one pass per segment."""
     P = np.asarray(points, float)
