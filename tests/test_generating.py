@@ -248,6 +248,57 @@ def test_engagement_across_a_slot_keeps_the_far_wall(tmp_path):
     assert np.all((n_near >= (x > R - a_e + tol).sum() - 1) & (n_near <= (x > R - a_e).sum() + 1))
 
 
+def test_generating_point_of_the_last_row_is_its_contact_with_the_design_surface(tmp_path):
+    """Three rows up a 40° slope (0.6 mm apart, 0.2 mm of stock): the last row leaves a band
+    from the second row's cusp (0.3 mm on one side) to where it lifts 80 µm off the slope (0.9 mm
+    on the other), so the mean of its pixels lies off its contact line and reads the rotation
+    angle ~5° off the slope's normal. With the design model the generating point is where the
+    pass touches it: the slope's normal exactly (φ = 0°, q = 40°: its direction from the ball
+    centre, closed form).
+    """
+    import trimesh
+    R, q_deg, stock_mm = 5.0, 40.0, 0.2
+    q = np.radians(q_deg)
+    n = np.array([-np.sin(q), 0.0, np.cos(q)])                   # out of the material, facing -x
+
+    def slab(offset):                           # box under the plane n·p = offset
+        corners = []
+        for x in (-15.0, 15.0):
+            for y in (-8.0, 10.0):
+                corners += [(x, y, -30.0), (x, y, (offset - n[0] * x) / n[2])]
+        return trimesh.convex.convex_hull(np.array(corners))
+    slab(stock_mm).export(tmp_path / "stock.stl")
+    slab(0.0).export(tmp_path / "design.stl")
+    ys = [0.0, 0.6, 1.2]
+    tip = lambda x, y: np.array([x, y, -n[0] * x / n[2]]) + R * n - [0.0, 0.0, R]  # noqa: E731
+    ends = [(tip(-5, y), tip(5, y)) if i % 2 == 0 else (tip(5, y), tip(-5, y)) for i, y in enumerate(ys)]
+    a = np.array([e[0] for e in ends])
+    b = np.array([e[1] for e in ends])
+    k = len(ys)
+    passes = pa.table({
+        "program_id": ["slope"] * k, "pass_id": pa.array(range(k), pa.int32()),
+        "block_no": pa.array(range(k), pa.int32()), "line_no": pa.array(range(1, k + 1), pa.int32()),
+        "motion": pa.array([1] * k, pa.int8()),
+        "x0_mm": a[:, 0], "y0_mm": a[:, 1], "z0_mm": a[:, 2], "x1_mm": b[:, 0], "y1_mm": b[:, 1], "z1_mm": b[:, 2],
+        "feed_mm_min": [2000.0] * k, "spindle_rpm": [10000.0] * k, "tool": pa.array([1] * k, pa.int32()),
+        "t_start_s": np.arange(k, dtype=float), "t_end_s": np.arange(1, k + 1, dtype=float)})
+    tool = {"type": "ball", "diameter_mm": 2 * R, "flutes": 2, "stickout_mm": 30.0}
+    params = {"tool": tool, "render": {"backend": "auto", "px_per_mm": 20}}
+    mid = 0.5 * (a[-1] + b[-1])
+    cf = pa.table({"pass_id": pa.array([k - 1], pa.int32()), "is_cutting": [True],
+                   "pred_x_mm": [mid[0]], "pred_y_mm": [mid[1]], "pred_z_mm": [mid[2]]})
+    ap = pa.table({"pass_id": pa.array([k - 1], pa.int32()), "predict": [True]})
+    inputs = {"passes": passes, "stock": str(tmp_path / "stock.stl"), "cut_filter": cf, "angle_prune": ap}
+    band = generating.run(inputs, params)["generating"].to_pylist()[0]
+    contact = generating.run({**inputs, "nominal": str(tmp_path / "design.stl")}, params)["generating"].to_pylist()[0]
+    wrap = lambda phi: (phi + 180.0) % 360.0 - 180.0  # noqa: E731
+    print(f"\nlast row: band mean φ {wrap(band['rotation_deg']):.2f}°, q {band['contact_deg']:.2f}°; "
+          f"contact φ {wrap(contact['rotation_deg']):.2f}°, q {contact['contact_deg']:.2f}°")
+    assert abs(wrap(band["rotation_deg"])) > 2.0              # the case: the band is one-sided
+    assert abs(wrap(contact["rotation_deg"])) < 0.5 and abs(contact["contact_deg"] - q_deg) < 0.5
+    assert np.allclose([contact["nx"], contact["ny"], contact["nz"]], n, atol=0.01)
+
+
 def _chain(points, motion=None):
     """PassGeometry of the polyline ``points`` (tips), one pass per segment."""
     P = np.asarray(points, float)
