@@ -123,6 +123,10 @@ class Correct(_Strict):
     # prediction asks for (1 = the plain fixed point P = P0 − e(P)·n); a vertex whose change does
     # not shrink from round to round has its fraction halved (see stages.correct.correct_once)
     relax: float = Field(1.0, gt=0, le=1)
+    # rounds 2…: the step fraction from the secant of the last two rounds (1/(1 − g), g the error's
+    # gain on the move, up to 4 × relax; stages.correct._secant_fraction): one round to the fixed
+    # point of an error linear in the move, where the plain fixed point leaves g per round
+    accelerate: bool = True
     ln_normals: bool = False                 # also write Heidenhain-style LN blocks with normals
     comp_table: bool = False                 # also write a contact-angle compensation table
     # undo the tool deflection as a vector (−δ; its tangential part shifts cusps), the rest of the

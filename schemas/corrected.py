@@ -22,6 +22,9 @@ SCHEMA = pa.schema([
     pa.field('clipped', pa.bool_()),          # the move was limited to correct.max_move_um
     pa.field('iteration', pa.int32()),        # rounds of predict → correct run so far
     pa.field('relax', pa.float64()),          # fraction of its step the vertex took in the last round
+    pa.field('step_x_um', pa.float64()),      # the step the last round's errors asked for (before the
+    pa.field('step_y_um', pa.float64()),      # fraction, the clip and arc refits): the next round's
+    pa.field('step_z_um', pa.float64()),      # secant (correct.accelerate) compares its own with it
     pa.field('nx', pa.float64()),             # vertex normal (unit sum of the predicted passes' normals),
     pa.field('ny', pa.float64()),             # NaN where no predicted pass meets the vertex
     pa.field('nz', pa.float64()),

@@ -57,7 +57,10 @@ change against the previous table's coordinates. Two kinds of errors drive it:
 - predictions, which are relative to the path they were made for (the surface of path P is
   P + e(P)·n): the command that leaves the original surface is the fixed point P = P0 − e(P)·n, so
   the move for the errors predicted on the corrected path is applied to the ORIGINAL blocks
-  (:func:`run` with ``round_passes``; the engine's rounds in ``pipeline/iterate.py``).
+  (:func:`run` with ``round_passes``; the engine's rounds in ``pipeline/iterate.py``). Where the
+  error depends on the move (a heavy cut: moving into the wall adds material and deflection) the
+  plain fixed point closes only 1 − g of the gap a round; ``correct.accelerate`` takes the secant
+  step of the last two rounds instead (:func:`_secant_fraction`).
 
 :func:`apply_corrected` turns a ``corrected`` table back into ``blocks`` (new coordinates and arc
 centres) for the next prediction.
@@ -70,16 +73,16 @@ import pyarrow as pa
 from stages import InputError
 
 NAME = "correct"
-VERSION = "7"
+VERSION = "8"
 INPUTS = ("blocks", "passes", "errors")
 OUTPUTS = ("corrected",)
 # only the clip limit and the relaxation of rounds 2… change the table; tol_um and max_iter steer
 # the engine's rounds and the LN / compensation-table options the writer, so changing them re-uses
 # every cached round
-PARAMS = ("correct.max_move_um", "correct.relax", "correct.deflection_vector")
+PARAMS = ("correct.max_move_um", "correct.relax", "correct.accelerate", "correct.deflection_vector")
 
 DEFAULTS = {"max_move_um": 50.0, "tol_um": 0.1, "max_iter": 5, "relax": 1.0, "ln_normals": False,
-            "comp_table": False, "deflection_vector": False}
+            "comp_table": False, "deflection_vector": False, "accelerate": True}
 _PLANE_AXES = {17: (0, 1, 2), 18: (2, 0, 1), 19: (1, 2, 0)}  # as stages.parse: (first, second, normal)
 _EPS_UM = 1e-9
 # normals of the two passes at a vertex closer than this are one normal for the least-squares
@@ -93,6 +96,11 @@ NORMAL_TOL_DEG = 2.0
 REFINE_MAX_RATIO = 2.0
 # smallest step fraction of a vertex whose rounds do not contract (see correct_once)
 MIN_RELAX = 1.0 / 16
+# rounds 2…: the secant step (``correct.accelerate``) takes at most this many times the plain step
+# (an error gain g = 0.75 on the move), and only after a move of at least ACCEL_MIN_UM (a few times
+# the pass-to-pass jitter of the prediction, which would otherwise set the slope)
+MAX_ACCEL = 4.0
+ACCEL_MIN_UM = 5.0
 _PLANE_AXES_LUT = np.zeros((20, 3), np.int64)
 for _pl, _ax in _PLANE_AXES.items():
     _PLANE_AXES_LUT[_pl] = _ax
@@ -220,8 +228,30 @@ def _params(params: dict) -> dict:
     return p
 
 
+def _secant_fraction(step, prev_step, prev_frac, fallback, relax):
+    """Fraction of this round's ``step`` each vertex takes: the secant of the rounds' fixed point.
+
+    Round k asked for r_k = T(x_{k-1}) − x_{k-1} (``step``); the last round asked for r_{k-1}
+    (``prev_step``) and moved Δx = frac_{k-1}·r_{k-1}. Along Δx the residual changes by
+    σ = (r_k − r_{k-1})·Δx / |Δx|² per µm moved, σ = g − 1 with g the gain of the error on the
+    move (a heavy cut on a wall: moving in adds material, the deflection grows, 0 < g < 1; an
+    error that falls as the path moves in, g < 0). The root of the linear residual is one step of
+    1/(1 − g) = −1/σ: exact in one round for an error linear in the move, where the plain fixed
+    point leaves g^k (the sample's wall passes: g ≈ 0.45). Clipped to [MIN_RELAX, ``relax`` ×
+    MAX_ACCEL]; where the last move was too small to tell (< ACCEL_MIN_UM) or the residual did not
+    fall along it (σ ≥ 0, no contraction), ``fallback`` (the halving rule).
+    """
+    dx = prev_frac[:, None] * prev_step
+    dx2 = np.einsum("ij,ij->i", dx, dx)
+    sigma = np.einsum("ij,ij->i", step - prev_step, dx) / np.maximum(dx2, 1e-30)
+    ok = (dx2 > ACCEL_MIN_UM ** 2) & (sigma < 0) & np.isfinite(sigma)
+    mu = np.clip(-1.0 / np.where(ok, sigma, -1.0), MIN_RELAX, relax * MAX_ACCEL)
+    return np.where(ok, mu, fallback)
+
+
 def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: dict,
-                 previous: pa.Table | None = None, relax: float | None = None) -> pa.Table:
+                 previous: pa.Table | None = None, relax: float | None = None,
+                 accelerate: bool = False) -> pa.Table:
     """One correction round: move every NC vertex of ``blocks`` against ``errors``.
 
     Parameters
@@ -318,16 +348,19 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
         prev_n = np.full((nb, 3), np.nan)
         last = end
     total_um = (end - orig) * 1000.0 + move
+    last_um = (last - orig) * 1000.0
+    step = total_um - last_um                   # what this round's errors ask of each vertex
     step_frac = np.ones(nb)
     if previous is not None and previous.num_rows and relax is not None:
-        last_um = (last - orig) * 1000.0
-        step = total_um - last_um
         prev_frac = (_col(previous, "relax") if "relax" in previous.column_names else np.ones(nb))
         prev_frac = np.where(np.isfinite(prev_frac), prev_frac, 1.0)
         # the step it asked for last round: its change over the fraction it took
         asked = _col(previous, "change_um") / prev_frac
         contracting = np.linalg.norm(step, axis=1) <= asked * (1 + 1e-9) + _EPS_UM
         step_frac = np.minimum(float(relax), np.where(contracting, prev_frac, np.maximum(prev_frac / 2, MIN_RELAX)))
+        if accelerate and "step_x_um" in previous.column_names:
+            step_frac = _secant_fraction(step, _xyz(previous, ("step_x_um", "step_y_um", "step_z_um")),
+                                         prev_frac, step_frac, float(relax))
         total_um = last_um + step_frac[:, None] * step
     if previous is not None and previous.num_rows:
         # a vertex no pass of this round predicts (a render lost its pass on the corrected path)
@@ -423,6 +456,7 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
         "clipped": clipped,
         "iteration": np.full(nb, iteration, np.int32),
         "relax": step_frac,
+        "step_x_um": step[:, 0], "step_y_um": step[:, 1], "step_z_um": step[:, 2],
         "nx": vn[:, 0], "ny": vn[:, 1], "nz": vn[:, 2],
     }, schema=SCHEMA)
 
@@ -676,4 +710,5 @@ def run(inputs: dict, params: dict) -> dict[str, pa.Table]:
         errors = with_missing_from(errors, inputs.get("first_errors"))
         relax = float(_params(params)["relax"])
     return {"corrected": correct_once(inputs["blocks"], inputs["passes"], errors, params,
-                                      previous=inputs.get("corrected"), relax=relax)}
+                                      previous=inputs.get("corrected"), relax=relax,
+                                      accelerate=bool(_params(params)["accelerate"]))}

@@ -788,7 +788,8 @@ def test_stage_run_matches_schema():
     assert table.num_rows == int((motion <= 3).sum())
     assert set(table.column("iteration").to_pylist()) == {1}
     assert correct.NAME == "correct" and correct.INPUTS == ("blocks", "passes", "errors")
-    assert correct.OUTPUTS == ("corrected",) and correct.PARAMS == ("correct.max_move_um", "correct.relax", "correct.deflection_vector")
+    assert correct.OUTPUTS == ("corrected",) and correct.PARAMS == ("correct.max_move_um", "correct.relax", "correct.accelerate",
+                                                                   "correct.deflection_vector")
 
 
 def test_incremental_program_random_moves_reverse_check():
@@ -984,7 +985,7 @@ def test_pass_missing_in_a_later_round_keeps_its_round_one_error():
     np.testing.assert_allclose(without.column("move_um").to_numpy()[at], 7.0, rtol=1e-9)
 
 
-def _linear_rounds(relax: float, e0: float, k: float, rounds: int):
+def _linear_rounds(relax: float, e0: float, k: float, rounds: int, accelerate: bool = False):
     """Rounds of ``correct.run`` on a synthetic prediction whose error grows with the move:
     e(s) = e0 + k·s, s = how far the pass has moved into the material (µm along −n). The surface
     then deviates from the original by e(s) − s; its fixed point is s* = e0 / (1 − k)."""
@@ -994,7 +995,7 @@ def _linear_rounds(relax: float, e0: float, k: float, rounds: int):
     n = passes.num_rows
     normal = np.array([0.6, 0.0, 0.8])
     normals = np.tile(normal, (n, 1))
-    params = {"correct": {"relax": relax, "max_move_um": 1e4}}
+    params = {"correct": {"relax": relax, "max_move_um": 1e4, "accelerate": accelerate}}
     cor = run({"blocks": blocks, "passes": passes, "errors": _errors(passes, np.full(n, e0), normals)},
               params)["corrected"]
     dev = []
@@ -1026,3 +1027,25 @@ def test_rounds_take_half_steps_where_they_do_not_contract():
     # relax caps the step: 0.5 from round 2 on, factor 1 − 0.5·(1 − k) = 0.6
     capped = _linear_rounds(0.5, 10.0, 0.2, 4)
     np.testing.assert_allclose(capped[1:] / capped[:-1], 0.6, rtol=1e-6)
+
+
+def test_accelerated_rounds_reach_the_fixed_point_of_a_linear_error_in_one_round():
+    """With ``correct.accelerate`` round 2 takes the secant step 1/(1 − k) of what the new
+    prediction asks: for an error linear in the move (e = e0 + k·s, fixed point s* = e0/(1 − k))
+    the deviation from the original surface is 0 after round 2 whatever k (a heavy cut whose
+    deflection grows as the path moves into the wall, 0 < k < 1; an error that falls, k < 0),
+    where the plain fixed point leaves k^r. Beyond the cap (k = 0.9: 1/(1 − k) = 10 > 4) the step
+    is 4×, the deviation falls by 1 − 4(1 − k) = 0.6 a round; where the residual does not fall
+    along the move (k > 1) the halving rule keeps it bounded. References: the linear map's
+    closed forms, not the code."""
+    for k in (-1.5, -0.5, 0.2, 0.45, 0.7):
+        dev = _linear_rounds(1.0, 10.0, k, 3, accelerate=True)
+        plain = _linear_rounds(1.0, 10.0, k, 3) if 0 < k < 1 else None
+        assert dev[0] == pytest.approx(10.0 * k, rel=1e-9)      # round 1 is the plain move
+        assert np.all(np.abs(dev[1:]) < 1e-6), (k, dev)
+        if plain is not None:
+            np.testing.assert_allclose(plain, 10.0 * k ** np.arange(1, 4), rtol=1e-6)
+    capped = _linear_rounds(1.0, 10.0, 0.9, 4, accelerate=True)
+    np.testing.assert_allclose(capped[1:] / capped[:-1], 0.6, rtol=1e-6)
+    runaway = _linear_rounds(1.0, 10.0, 1.2, 6, accelerate=True)
+    assert np.all(np.abs(runaway) < 10.0 * 1.2 * 1.5)
