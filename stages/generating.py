@@ -19,8 +19,9 @@ the generating point C, the mean of their φ (circular) and q values are its rot
 angle, and the surface normal (out of the material) at C follows from φ and q. With the design
 model (workflow ``nominal``), a pass that leaves both the design surface and rest material (the
 semi-finishing's, on the far wall of a pocket corner) has C on the design surface, where the pass
-touches it: the pixels within :data:`CONTACT_BAND_MM` of the nearest one, when any lies within
-:data:`DESIGN_TOL_MM` of the model. The band a pass leaves is symmetric about its contact only
+touches it: the pixels within :data:`CONTACT_BAND_MM` of the deepest into the model (signed
+distance: a correction round's path moved into the material lies under it), when that one lies
+within :data:`DESIGN_TOL_MM` of the model. The band a pass leaves is symmetric about its contact only
 between two rows; the last row before a wall or an edge leaves a band reaching much farther up one
 side, whose mean read the rotation angle 4-9° off the surface normal (sample row y 61.2: up to
 120 µm of the error, the deflection there swinging 20 µm per degree of spindle angle).
@@ -62,7 +63,7 @@ from stages.cut_filter import (PASSES_PER_DRAW, coarse_tolerance, fine_tolerance
 from stages.render import Scene, Snapshot, View
 
 NAME = "generating"
-VERSION = "13"
+VERSION = "14"
 INPUTS = ("passes", "stock", "cut_filter", "angle_prune", "nominal")
 OUTPUTS = ("generating", "engagement")
 PARAMS = ("tool", "render")
@@ -77,9 +78,11 @@ STEEP_DEG = 60.0          # claim 6: re-render along the normal above this conta
 # rest material the program leaves for another (a pass down a wall into a pocket corner rides over
 # the stock the semi-finishing left there, 0.5-1.7 mm off the model on the sample), not the design
 # surface the pass finishes; the generating point is taken on the design surface where the pass
-# leaves any. Well under the smallest allowance (0.2 mm), over cusps, CAM and render tolerance.
-DESIGN_TOL_MM = 0.08
-# the pixels nearest the design surface, within this of the nearest: the pass's contact (a ball
+# leaves any. Over cusps, CAM and render tolerance and the moves of a correction round (a corrected
+# path's envelope lies up to correct.max_move_um off the model by construction; 0.3 mm on the
+# sample), under the rest material.
+DESIGN_TOL_MM = 0.35
+# the pixels deepest into the design surface, within this of the deepest: the pass's contact (a ball
 # lifts 10 µm off a plane 0.32 mm from its contact point; the sample's cusps are 9 µm high, so
 # between two rows the band is the whole strip the pass leaves, as without the model)
 CONTACT_BAND_MM = 0.01
@@ -301,15 +304,19 @@ def own_path_gap(shape, f, tol):
 
 
 def _on_design(design, view, M, mask, tol_mm=DESIGN_TOL_MM):
-    """The pixels of ``mask`` where the pass touches the design surface: within
-    :data:`CONTACT_BAND_MM` of the nearest one, when that one lies within ``tol_mm`` of it; all of
-    ``mask`` when the design model is not given or no pixel is that near."""
+    """The pixels of ``mask`` where the pass touches the design surface: the deepest into it
+    (signed distance, within :data:`CONTACT_BAND_MM` of the lowest), when the lowest lies within
+    ``tol_mm`` above it; all of ``mask`` when the design model is not given or none is that low.
+
+    Deepest, not nearest: a path a correction round moved into the material leaves its envelope
+    under the model, and its pixels nearest the model are where it meets the neighbouring row's
+    surface, off its contact."""
     if design is None or not mask.any():
         return mask
     rows, cols = np.nonzero(mask)
     pts = view.pixel_points(rows, cols, M.depth[mask])
-    dist = design.distance(pts)
-    if not (dist <= tol_mm).any():
+    dist = design.signed_distance(pts)
+    if not dist.min() <= tol_mm:
         return mask
     near = dist <= dist.min() + CONTACT_BAND_MM
     out = np.zeros_like(mask)

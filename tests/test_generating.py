@@ -248,13 +248,16 @@ def test_engagement_across_a_slot_keeps_the_far_wall(tmp_path):
     assert np.all((n_near >= (x > R - a_e + tol).sum() - 1) & (n_near <= (x > R - a_e).sum() + 1))
 
 
-def test_generating_point_of_the_last_row_is_its_contact_with_the_design_surface(tmp_path):
+@pytest.mark.parametrize("moved_mm", [0.0, -0.15])
+def test_generating_point_of_the_last_row_is_its_contact_with_the_design_surface(tmp_path, moved_mm):
     """Three rows up a 40° slope (0.6 mm apart, 0.2 mm of stock): the last row leaves a band
     from the second row's cusp (0.3 mm on one side) to where it lifts 80 µm off the slope (0.9 mm
     on the other), so the mean of its pixels lies off its contact line and reads the rotation
     angle ~5° off the slope's normal. With the design model the generating point is where the
     pass touches it: the slope's normal exactly (φ = 0°, q = 40°: its direction from the ball
-    centre, closed form).
+    centre, closed form). ``moved_mm``: the last row as a correction round commands it, moved
+    into the slope along its normal (its envelope lies that far off the design model by
+    construction; the same contact, shifted).
     """
     import trimesh
     R, q_deg, stock_mm = 5.0, 40.0, 0.2
@@ -274,6 +277,8 @@ def test_generating_point_of_the_last_row_is_its_contact_with_the_design_surface
     ends = [(tip(-5, y), tip(5, y)) if i % 2 == 0 else (tip(5, y), tip(-5, y)) for i, y in enumerate(ys)]
     a = np.array([e[0] for e in ends])
     b = np.array([e[1] for e in ends])
+    a[-1] += moved_mm * n
+    b[-1] += moved_mm * n
     k = len(ys)
     passes = pa.table({
         "program_id": ["slope"] * k, "pass_id": pa.array(range(k), pa.int32()),

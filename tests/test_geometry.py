@@ -170,6 +170,12 @@ def test_design_surface_distance_matches_brute_force():
     assert near.sum() > 50 and np.max((d - ref)[near]) < 0.01
     assert np.median((d - ref)[near]) < 1e-9              # mostly the exact face
     assert np.max(d - ref) < 0.05
+    offset = rng.uniform(-0.5, 1.0, len(p))                        # signed: inside the sphere < 0
+    q = p + offset[:, None] * mesh.face_normals[f]
+    sd = ds.signed_distance(q)
+    clear = np.abs(offset) > 0.02
+    assert np.array_equal(np.sign(sd[clear]), np.sign(offset[clear]))
+    assert np.allclose(np.abs(sd), ds.distance(q))
 
 
 def test_design_surface_load_errors(tmp_path):
