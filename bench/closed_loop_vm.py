@@ -9,7 +9,7 @@ with ``correct.max_iter`` = 1 and = 3. The original and both corrected programs 
 prediction code) and probed on the design cylinder; the error is measured against the original
 program machined on a rigid machine (so the cusps, which no correction removes, are not counted).
 
-    python3 bench/closed_loop_vm.py [--out /tmp/closed_loop_vm]
+    python3 bench/closed_loop_vm.py [--out /tmp/closed_loop_vm] [--correct KEY=VALUE ...]
 """
 from __future__ import annotations
 
@@ -50,13 +50,16 @@ def program() -> bytes:
     return "\n".join(lines).encode()
 
 
-def workflow(root: Path, max_iter: int) -> Path:
+def workflow(root: Path, max_iter: int, correct_opts=()) -> Path:
     import yaml
     wf = {"name": "cyl", "programs": "nc/*.nc", "stock": "stock.stl", "tool": TOOL, "material": MATERIAL,
           "machine": {"frf": {a: [{"fn_hz": 900, "zeta": 0.03, "k_n_per_um": K}] for a in "xy"}},
           "render": {"backend": "auto", "px_per_mm": 20}, "prune": {"min_contact_deg": 0},
           "split": {"max_pass_mm": 40.0}, "output": "out",
           "correct": {"max_move_um": 100, "tol_um": 0.05, "max_iter": max_iter}}
+    for kv in correct_opts:                      # e.g. accelerate=false
+        k, _, v = kv.partition("=")
+        wf["correct"][k] = yaml.safe_load(v)
     p = root / f"wf{max_iter}.yaml"
     p.write_text(yaml.safe_dump(wf))
     return p
@@ -92,6 +95,8 @@ def main():
     from pipeline.cli import main as cli
     ap = argparse.ArgumentParser()
     ap.add_argument("--out", default="/tmp/closed_loop_vm")
+    ap.add_argument("--correct", action="append", default=[], metavar="KEY=VALUE",
+                    help="a workflow `correct` option for both runs (repeatable), e.g. accelerate=false")
     args = ap.parse_args()
     root = Path(args.out)
     shutil.rmtree(root, ignore_errors=True)
@@ -104,7 +109,7 @@ def main():
     written, timings = {"original": src}, {}
     for mi, name in ((1, "one round"), (3, "three rounds")):
         t0 = time.perf_counter()
-        r = CliRunner().invoke(cli, ["run", str(workflow(root, mi)), "--workers", "1", "-q"], catch_exceptions=False)
+        r = CliRunner().invoke(cli, ["run", str(workflow(root, mi, args.correct)), "--workers", "1", "-q"], catch_exceptions=False)
         timings[name] = round(time.perf_counter() - t0, 1)
         if r.exit_code != 0:
             raise SystemExit(r.output)
