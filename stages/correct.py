@@ -82,7 +82,7 @@ OUTPUTS = ("corrected",)
 PARAMS = ("correct.max_move_um", "correct.relax", "correct.accelerate", "correct.deflection_vector")
 
 DEFAULTS = {"max_move_um": 50.0, "tol_um": 0.1, "max_iter": 5, "relax": 1.0, "ln_normals": False,
-            "comp_table": False, "deflection_vector": False, "accelerate": True}
+            "comp_table": False, "deflection_vector": False, "accelerate": False}
 _PLANE_AXES = {17: (0, 1, 2), 18: (2, 0, 1), 19: (1, 2, 0)}  # as stages.parse: (first, second, normal)
 _EPS_UM = 1e-9
 # normals of the two passes at a vertex closer than this are one normal for the least-squares
