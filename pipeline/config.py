@@ -130,6 +130,9 @@ class Correct(_Strict):
     # 11.7 %; the whole sample program after three rounds 57.2 %, with 9a74cd1's generating point,
     # against 55.0 % plain at dbcce77)
     accelerate: bool = False
+    # limit vertex moves so that the tool does not cut into the surface other passes generate
+    # (a heavy corner pass moved sideways into the wall beside it; stages.correct.gouge_limit)
+    gouge_limit: bool = True
     ln_normals: bool = False                 # also write Heidenhain-style LN blocks with normals
     comp_table: bool = False                 # also write a contact-angle compensation table
     # undo the tool deflection as a vector (−δ; its tangential part shifts cusps), the rest of the

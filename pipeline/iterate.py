@@ -98,6 +98,9 @@ def _source(run, stage, name: str, part, rkeys: dict, prev_correct: str):
             return "split", rkeys["split"], "passes"
         if name == "first_errors":
             return "errors", part.keys["errors"], "errors"
+        if name == "generating":
+            # the moves are from the original program: the gouge limit checks its surface
+            return "generating", part.keys["generating"], "generating"
         if name == "corrected":
             return "correct", prev_correct, "corrected"
     if name == "blocks":

@@ -38,6 +38,14 @@ m = −(e_i n_i + e_j n_j), which realises both errors exactly.
   does not move.
 - Moves are clipped at ``max_move_um`` (the total move over all iterations); clipped vertices are
   flagged in the ``clipped`` column.
+- Gouge limit (``correct.gouge_limit``, on by default; needs the ``generating`` table and the
+  tool): a vertex is not moved so far that the tool cuts past the generating point of another
+  surface it passes beside (:func:`gouge_limit`); ``gouge_limit_um`` lists what was taken off. On
+  the sample mould's pocket corner (x 78, y 36–39) four 0.2 mm passes descending into the corner
+  (predicted −217…−437 µm, a buried ball deflected ~1 mm) share vertices with floor passes; the
+  least-squares move that realises both is 500–670 µm along +x, and with the tool's side 0.07–0.13
+  mm from the wall, the 300 µm it was clipped to cut the wall 40–110 µm below what the wall's own
+  passes left (on the virtual machine: wall passes +41 → −43 µm).
 - Arcs (G2/G3): the chord points of the arc are moved like vertices, then the arc is refitted by
   least squares: the centre lies on the perpendicular bisector of the moved end points (so the
   program stays consistent) at the position that best fits the moved chord points (algebraic
@@ -73,16 +81,18 @@ import pyarrow as pa
 from stages import InputError
 
 NAME = "correct"
-VERSION = "8"
-INPUTS = ("blocks", "passes", "errors")
+VERSION = "9"
+INPUTS = ("blocks", "passes", "errors", "generating")
 OUTPUTS = ("corrected",)
 # only the clip limit and the relaxation of rounds 2… change the table; tol_um and max_iter steer
 # the engine's rounds and the LN / compensation-table options the writer, so changing them re-uses
 # every cached round
-PARAMS = ("correct.max_move_um", "correct.relax", "correct.accelerate", "correct.deflection_vector")
+PARAMS = ("correct.max_move_um", "correct.relax", "correct.accelerate", "correct.deflection_vector",
+          "correct.gouge_limit", "tool")
 
 DEFAULTS = {"max_move_um": 50.0, "tol_um": 0.1, "max_iter": 5, "relax": 1.0, "ln_normals": False,
-            "comp_table": False, "deflection_vector": False, "accelerate": False}
+            "comp_table": False, "deflection_vector": False, "accelerate": False,
+            "gouge_limit": True}
 _PLANE_AXES = {17: (0, 1, 2), 18: (2, 0, 1), 19: (1, 2, 0)}  # as stages.parse: (first, second, normal)
 _EPS_UM = 1e-9
 # normals of the two passes at a vertex closer than this are one normal for the least-squares
@@ -101,6 +111,20 @@ MIN_RELAX = 1.0 / 16
 # the pass-to-pass jitter of the prediction, which would otherwise set the slope)
 MAX_ACCEL = 4.0
 ACCEL_MIN_UM = 5.0
+# gouge limit (see gouge_limit): generating points of other passes whose normal lies within this
+# angle of a vertex's own pass normals are the same surface (the neighbouring rows of a floor or a
+# slope, corrected by their own moves) and do not limit the vertex
+SAME_SURFACE_DEG = 30.0
+# a generating point deeper than this inside the tool at the ORIGINAL vertex is not one the vertex
+# can gouge (the program already cuts there: a point taken off the design within the generating
+# stage's tolerance, a crossing pass), so it sets no limit
+GOUGE_INSIDE_MM = 0.02
+# candidate search (see _NearTool): a vertex whose own normals are within _FLOOR_DEG of +z stands
+# on a floor, and every point within _FLOOR_DEG + _FLAT_DEG ≤ SAME_SURFACE_DEG of +z is its surface
+_FLOOR_DEG = 10.0
+_FLAT_DEG = 20.0
+# vertices checked at once (pairs within the tool's reach: ~100–300 per vertex on the sample)
+_GOUGE_CHUNK = 8192
 _PLANE_AXES_LUT = np.zeros((20, 3), np.int64)
 for _pl, _ax in _PLANE_AXES.items():
     _PLANE_AXES_LUT[_pl] = _ax
@@ -189,6 +213,117 @@ def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True):
     return m + extra
 
 
+def gouge_limit(total_um, tips, own, own_normals, gen_xyz, gen_normals, gen_pass, shape, sweeps=3):
+    """Limit vertex moves so the tool does not cut into the surface other passes generate.
+
+    A vertex is moved for the errors of its own two passes; the tool at the moved vertex must not
+    reach past the design surface that OTHER passes finish (a heavy cut in a pocket corner asks to
+    move sideways into the wall beside it, which the wall's own passes leave at the design). With
+    the tool at the original vertex (tip ``tips``), a generating point C_k at clearance d_k ≥ 0 from
+    the tool body in direction u_k (:meth:`stages.geometry.ToolShape.clearance`) is reached by a
+    move m when u_k·m > d_k (first order, the tool body locally a plane at its nearest point). The
+    excess of the most violated limit is taken off along u_k, ``sweeps`` times. Points on the same
+    surface (normal within :data:`SAME_SURFACE_DEG` of the vertex's own pass normals: the next row
+    of a floor, which moves with its own errors) and points already inside the tool
+    (:data:`GOUGE_INSIDE_MM`) set no limit. The tool's deflection is ignored: a correction is not
+    allowed to rely on it to stay off another surface.
+
+    Parameters
+    ----------
+    total_um : (v, 3) float, vertex moves from the original program, µm (a limited copy is returned)
+    tips : (v, 3) float, tool tip at the original vertices, mm
+    own : (v, 2) int, index of the vertex's own passes into ``gen_pass``'s numbering (−1: none)
+    own_normals : (v, 2, 3) float, their unit normals (zeros: none)
+    gen_xyz, gen_normals : (g, 3) float, generating points (mm) and their unit normals
+    gen_pass : (g,) int, pass index of each generating point
+    shape : :class:`stages.geometry.ToolShape`
+
+    Returns
+    -------
+    ((v, 3) limited moves in µm, (v,) µm taken off each vertex's move)
+    """
+    out = np.array(total_um, dtype=float, copy=True)
+    size = np.linalg.norm(out, axis=1)
+    moving = np.flatnonzero(size > _EPS_UM)
+    if moving.size == 0 or len(gen_xyz) == 0:
+        return out, np.zeros(len(out))
+    gen_xyz = np.asarray(gen_xyz, dtype=float)
+    near = _NearTool(gen_xyz, np.asarray(gen_normals, dtype=float), shape)
+    cos_same = np.cos(np.radians(SAME_SURFACE_DEG))
+    for lo in range(0, moving.size, _GOUGE_CHUNK):
+        v = moving[lo:lo + _GOUGE_CHUNK]
+        i, j = near.pairs(tips[v], size[v] / 1000.0, own_normals[v])
+        i = v[i]
+        # the exact clearance first (few pairs are within reach), then the pass filters
+        d0, u = shape.clearance(gen_xyz[j] - tips[i])
+        keep = (d0 < size[i] / 1000.0) & (d0 >= -GOUGE_INSIDE_MM) & np.isfinite(u).all(axis=1)
+        keep &= (gen_pass[j] != own[i, 0]) & (gen_pass[j] != own[i, 1])
+        i, j, d0, u = i[keep], j[keep], d0[keep], u[keep]
+        same = np.einsum("pj,pkj->pk", gen_normals[j], own_normals[i]).max(axis=1) > cos_same
+        i, u, limit = i[~same], u[~same], np.maximum(d0[~same], 0.0) * 1000.0
+        for _ in range(sweeps):
+            excess = np.einsum("pj,pj->p", u, out[i]) - limit
+            bad = excess > 1e-6
+            if not bad.any():
+                break
+            ib, eb, ub = i[bad], excess[bad], u[bad]
+            order = np.lexsort((-eb, ib))                  # per vertex, the most violated first
+            first = order[np.r_[True, ib[order][1:] != ib[order][:-1]]]
+            out[ib[first]] -= eb[first, None] * ub[first]
+    return out, np.linalg.norm(out - total_um, axis=1)
+
+
+class _NearTool:
+    """Candidate generating points within reach of a tool at given tips (a superset, for the exact
+    clearance of :meth:`stages.geometry.ToolShape.clearance`).
+
+    Two k-d tree queries instead of one disk around the axis (which on a floor returns every point
+    under the tool, hundreds per vertex): the sphere of radius R + reach about the corner's centre
+    (it holds the whole body below the centre and all points within reach of it) and, for the
+    shank, the box |dx|, |dy| ≤ R + reach, z from the corner's centre up to the stickout (a
+    Chebyshev ball of the tree with z scaled so that its half height is the shank's). The shank
+    box holds only steep points (normal over :data:`_FLAT_DEG` from +z: walls; the shank reaches a
+    floor only at a wall's top edge, which the wall's own points guard). A vertex whose own
+    normals are within :data:`_FLOOR_DEG` of +z queries the steep points alone: every flatter point
+    is within SAME_SURFACE_DEG of its normals. Most vertices of a mould are on floors; without this
+    the sphere touching the floor it stands on made each query ~4 µs.
+    """
+
+    def __init__(self, points, normals, shape):
+        from scipy.spatial import cKDTree
+        self.shape = shape
+        self.half = max(shape.stickout_mm - shape.corner_mm, 1e-3) / 2.0
+        self.scale = shape.radius_mm / self.half
+        self.steep = np.flatnonzero(normals[:, 2] < np.cos(np.radians(_FLAT_DEG)))
+        self.ball_all = cKDTree(points)
+        self.ball_steep = cKDTree(points[self.steep])
+        self.box_steep = cKDTree(points[self.steep] * [1.0, 1.0, self.scale])
+
+    @staticmethod
+    def _flat(hits, rows, index=None):
+        counts = np.fromiter((len(h) for h in hits), np.int64, len(hits))
+        j = np.fromiter((k for h in hits for k in h), np.int64, int(counts.sum()))
+        return np.repeat(rows, counts), (j if index is None else index[j])
+
+    def pairs(self, tips, reach, own_normals):
+        """(i, j): tip index, point index of every candidate pair."""
+        R, rc = self.shape.radius_mm, self.shape.corner_mm
+        on_floor = (own_normals[:, :, 2].min(axis=1) >= np.cos(np.radians(_FLOOR_DEG)))
+        out = []
+        if self.steep.size:
+            mid = (tips + [0.0, 0.0, rc + self.half]) * [1.0, 1.0, self.scale]
+            hits = self.box_steep.query_ball_point(mid, R + reach, p=np.inf, return_sorted=False)
+            out.append(self._flat(hits, np.arange(len(tips)), self.steep))
+        for rows, tree, index in ((np.flatnonzero(on_floor), self.ball_steep, self.steep),
+                                  (np.flatnonzero(~on_floor), self.ball_all, None)):
+            if rows.size and tree.n:
+                hits = tree.query_ball_point(tips[rows] + [0.0, 0.0, rc], R + reach[rows], return_sorted=False)
+                out.append(self._flat(hits, rows, index))
+        if not out:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        return np.concatenate([o[0] for o in out]), np.concatenate([o[1] for o in out])
+
+
 def _errors_per_pass(passes: pa.Table, errors: pa.Table):
     """Error, normal, has-flag and tool deflection vector (µm; zero where the table has none) per
     pass row (passes in pass_id order)."""
@@ -222,6 +357,20 @@ def _errors_per_pass(passes: pa.Table, errors: pa.Table):
     return err, nrm, has, defl
 
 
+def _generating_points(generating: pa.Table, passes: pa.Table):
+    """Generating points (mm), unit normals and pass index (into ``passes`` sorted by pass id)."""
+    if generating.num_rows == 0 or passes.num_rows == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64)
+    xyz = _xyz(generating, ("gen_x_mm", "gen_y_mm", "gen_z_mm"))
+    n = _xyz(generating, ("nx", "ny", "nz"))
+    ids = _col(passes, "pass_id", np.int64)
+    gid = _col(generating, "pass_id", np.int64)
+    k = np.minimum(np.searchsorted(ids, gid), ids.size - 1)
+    ok = (ids[k] == gid) & np.isfinite(xyz).all(axis=1) & np.isfinite(n).all(axis=1)
+    n = n[ok] / np.maximum(np.linalg.norm(n[ok], axis=1), 1e-12)[:, None]
+    return xyz[ok], n, k[ok]
+
+
 def _params(params: dict) -> dict:
     p = dict(DEFAULTS)
     p.update((params or {}).get("correct") or {})
@@ -251,7 +400,8 @@ def _secant_fraction(step, prev_step, prev_frac, fallback, relax):
 
 def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: dict,
                  previous: pa.Table | None = None, relax: float | None = None,
-                 accelerate: bool = False) -> pa.Table:
+                 accelerate: bool = False, generating: pa.Table | None = None,
+                 tool_shape=None) -> pa.Table:
     """One correction round: move every NC vertex of ``blocks`` against ``errors``.
 
     Parameters
@@ -269,6 +419,10 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
         falls faster than the path moves in, or a generating point that jumps between rounds) has
         its fraction halved (down to :data:`MIN_RELAX`) and keeps it; elsewhere it takes the full
         step, so a smooth prediction converges as fast as the plain fixed point
+    accelerate : rounds 2…: the secant step of the last two rounds (:func:`_secant_fraction`)
+    generating, tool_shape : the ``generating`` table of the ORIGINAL program's passes and the
+        tool (:class:`stages.geometry.ToolShape`): with both, moves are limited so that the tool
+        does not cut into the surface other passes generate (:func:`gouge_limit`); else unlimited
 
     Returns
     -------
@@ -326,6 +480,11 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
                         - defl[k_in] * has[k_in, None])
         vnormal = node_normal[node]
         vnormal[inside] = nrm[qc[inside]] * has[qc[inside], None]
+        # the vertex's own passes (they set its move; the gouge limit checks the others)
+        own = np.stack([node - 1, np.where(node < n_pass, node, -1)], 1)
+        own[inside] = qc[inside, None]
+        n_own = np.where(has[:, None], nrm, 0.0)
+        own_normals = np.where((own >= 0)[..., None], n_own[np.maximum(own, 0)], 0.0)
         # pass coordinates are the tool tip; blocks may be the ball centre (control_point: center)
         frame = np.median(end[~inside] - node_xyz[node[~inside]], axis=0) if (~inside).any() else np.zeros(3)
     else:
@@ -367,6 +526,11 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
         # keeps the last round's move instead of snapping back to the original program
         stale = np.linalg.norm(vnormal, axis=1) <= 1e-12
         total_um[stale] = (last[stale] - orig[stale]) * 1000.0
+    gouge_um = np.zeros(nb)
+    if n_pass and generating is not None and tool_shape is not None:
+        gen_xyz, gen_n, gen_pass = _generating_points(generating, passes)
+        total_um, gouge_um = gouge_limit(total_um, orig - frame, own, own_normals, gen_xyz, gen_n,
+                                         gen_pass, tool_shape)
     size = np.linalg.norm(total_um, axis=1)
     clipped = size > max_move * (1 + 1e-12)
     total_um[clipped] *= (max_move / size[clipped])[:, None]
@@ -454,6 +618,7 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
         "move_um": np.linalg.norm(total_um, axis=1),
         "change_um": change_um,
         "clipped": clipped,
+        "gouge_limit_um": gouge_um,
         "iteration": np.full(nb, iteration, np.int32),
         "relax": step_frac,
         "step_x_um": step[:, 0], "step_y_um": step[:, 1], "step_z_um": step[:, 2],
@@ -702,6 +867,8 @@ def run(inputs: dict, params: dict) -> dict[str, pa.Table]:
     move, the full step flipped vertices by up to 83 µm from round to round.
     (:func:`correct_iteratively` is the other case: its errors are measured against the original
     surface, residuals, and its moves accumulate.)
+    ``generating`` (of the original program: the moves are from it) and the ``tool`` parameter
+    drive the gouge limit (``correct.gouge_limit``).
     """
     errors = inputs["errors"]
     relax = None
@@ -709,6 +876,13 @@ def run(inputs: dict, params: dict) -> dict[str, pa.Table]:
         errors = errors_on_passes(errors, inputs["round_passes"], inputs["passes"])
         errors = with_missing_from(errors, inputs.get("first_errors"))
         relax = float(_params(params)["relax"])
+    shape = None
+    if (_params(params)["gouge_limit"] and params.get("tool") is not None
+            and inputs.get("generating") is not None):
+        from stages.forces import pick_entry, program_tool_number
+        from stages.geometry import tool_from_params
+        shape = tool_from_params(pick_entry(params["tool"], program_tool_number(inputs["passes"]), "tool"))
     return {"corrected": correct_once(inputs["blocks"], inputs["passes"], errors, params,
                                       previous=inputs.get("corrected"), relax=relax,
-                                      accelerate=bool(_params(params)["accelerate"]))}
+                                      accelerate=bool(_params(params)["accelerate"]),
+                                      generating=inputs.get("generating"), tool_shape=shape)}

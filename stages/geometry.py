@@ -79,6 +79,35 @@ class ToolShape:
         z = rc * (1.0 - np.cos(q))
         return np.stack(np.broadcast_arrays(r * np.cos(th), r * np.sin(th), z), axis=-1)
 
+    def clearance(self, points):
+        """Distance of ``points`` (tip frame, (..., 3) mm) from the tool body, and its direction.
+
+        The body is the envelope continued upward as the shank cylinder: the disk of radius
+        R − rc at height rc swept by a ball of radius rc (a torus; a ball for rc = R, the flat
+        end's sharp rim for rc = 0), closed above by the cylinder of radius R. Negative inside.
+
+        Returns
+        -------
+        (d, u): (...,) mm and (..., 3) unit vectors from the nearest body point towards the point
+        (the direction in which a move of the tool reduces the clearance by u·move); u is NaN
+        where the point lies on the axis inside the body (no direction).
+        """
+        p = np.asarray(points, dtype=float)
+        R, rc = self.radius_mm, self.corner_mm
+        rho = np.hypot(p[..., 0], p[..., 1])
+        radial = np.stack([p[..., 0], p[..., 1]], -1) / np.where(rho > 1e-12, rho, np.inf)[..., None]
+        above = p[..., 2] >= rc
+        # below the corner's centre height: the nearest point of the core disk, then out by rc
+        vr = np.where(above, rho - R, rho - np.minimum(rho, R - rc))
+        vz = np.where(above, 0.0, p[..., 2] - rc)
+        length = np.hypot(vr, vz)
+        d = np.where(above, rho - R, length - rc)
+        sign = np.where(above, 1.0, 1.0 / np.where(length > 1e-12, length, np.nan))
+        ur, uz = np.where(above, 1.0, vr * sign), np.where(above, 0.0, vz * sign)
+        u = np.concatenate([radial * ur[..., None], uz[..., None]], -1)
+        u[(rho <= 1e-12) & above] = np.nan
+        return d, u
+
 
 def tool_from_params(tool) -> ToolShape:
     """ToolShape from the ``tool`` workflow dict (pydantic dump of pipeline.config.Tool).

@@ -14,7 +14,8 @@ import numpy as np
 import pyarrow as pa
 import pytest
 
-from stages.correct import REFINE_MAX_RATIO, apply_corrected, correct_iteratively, correct_once, vertex_moves
+from stages.correct import (REFINE_MAX_RATIO, apply_corrected, correct_iteratively, correct_once, gouge_limit,
+                            vertex_moves)
 from stages.nc_writer import reverse_check, write_comp_table, write_ln_program, write_program
 from stages.parse import ARC_RADIUS_TOL_MM, parse_program
 from stages.split import split_blocks
@@ -787,9 +788,9 @@ def test_stage_run_matches_schema():
     motion = blocks.column("motion").to_numpy()
     assert table.num_rows == int((motion <= 3).sum())
     assert set(table.column("iteration").to_pylist()) == {1}
-    assert correct.NAME == "correct" and correct.INPUTS == ("blocks", "passes", "errors")
+    assert correct.NAME == "correct" and correct.INPUTS == ("blocks", "passes", "errors", "generating")
     assert correct.OUTPUTS == ("corrected",) and correct.PARAMS == ("correct.max_move_um", "correct.relax", "correct.accelerate",
-                                                                   "correct.deflection_vector")
+                                                                   "correct.deflection_vector", "correct.gouge_limit", "tool")
 
 
 def test_incremental_program_random_moves_reverse_check():
@@ -1049,3 +1050,81 @@ def test_accelerated_rounds_reach_the_fixed_point_of_a_linear_error_in_one_round
     np.testing.assert_allclose(capped[1:] / capped[:-1], 0.6, rtol=1e-6)
     runaway = _linear_rounds(1.0, 10.0, 1.2, 6, accelerate=True)
     assert np.all(np.abs(runaway) < 10.0 * 1.2 * 1.5)
+
+
+def _ball_clearance(points, tip, radius):
+    """Distance of points from a ball-end tool (tip ``tip``, axis +z), written out for the test."""
+    centre = np.asarray(tip) + [0.0, 0.0, radius]
+    rel = np.asarray(points) - centre
+    side = np.hypot(rel[:, 0], rel[:, 1]) - radius
+    return np.where(rel[:, 2] >= 0, side, np.linalg.norm(rel, axis=1) - radius)
+
+
+def test_gouge_limit_keeps_the_tool_off_the_wall_beside_a_corner_pass():
+    """Pocket corner: floor z 0, wall x 10 (material at x > 10), ball Ø10 with its tip at
+    (4.9, 0, 0): its side 0.1 mm from the wall. A corner pass (normal (0.6, 0, 0.8)) and a floor
+    pass meet at the vertex; their errors ask for 500 µm along +x (into the wall, the sample's
+    pocket corner). The wall's generating points allow 100 µm (the clearance): the closed form.
+    Moves away from the wall, along the floor's own surface and moves smaller than the clearance
+    keep their size; after the limit no wall point lies inside the moved tool (brute force)."""
+    from stages.geometry import ToolShape
+    ball = ToolShape("ball", 5.0, 5.0, 40.0)
+    ys, zs = np.meshgrid(np.linspace(-4, 4, 33), np.linspace(5.0, 20.0, 16))
+    wall = np.stack([np.full(ys.size, 10.0), ys.ravel(), zs.ravel()], 1)
+    xs, ys2 = np.meshgrid(np.linspace(-1, 9, 21), np.linspace(-4, 4, 17))
+    floor = np.stack([xs.ravel(), ys2.ravel(), np.zeros(xs.size)], 1)
+    gen = np.vstack([wall, floor])
+    gen_n = np.vstack([np.tile([-1.0, 0, 0], (len(wall), 1)), np.tile([0, 0, 1.0], (len(floor), 1))])
+    gen_pass = np.arange(len(gen)) + 10                 # other passes
+    moves = np.array([[500.0, 0, 0], [400.0, 300.0, 0], [-200.0, 0, 50], [0, 0, -20], [80.0, 0, 0]])
+    tips = np.tile([4.9, 0.0, 0.0], (len(moves), 1))
+    own = np.array([[0, 1]] * len(moves))
+    own_n = np.tile(np.array([[0.6, 0, 0.8], [0, 0, 1.0]]), (len(moves), 1, 1))
+    out, cut = gouge_limit(moves, tips, own, own_n, gen, gen_n, gen_pass, ball)
+    assert out[0] == pytest.approx([100.0, 0, 0], abs=1e-6)
+    assert cut[0] == pytest.approx(400.0, abs=1e-6)
+    np.testing.assert_allclose(out[2:], moves[2:], atol=1e-9)        # away, along the floor, small
+    assert cut[2:] == pytest.approx([0, 0, 0])
+    for tip, m in zip(tips, out):
+        assert _ball_clearance(wall, tip + m / 1000.0, 5.0).min() >= -0.002
+    # the diagonal move keeps its part along the wall: only the excess towards it is taken off
+    assert out[1][1] > 250.0 and out[1][0] <= 101.0
+    # the floor's points (the surface of the vertex's floor pass) set no limit
+    own_all = np.array([[10 + len(wall), 10 + len(wall) + 1]] * len(moves))
+    _, cut_floor_only = gouge_limit(moves, tips, own_all, own_n, floor, gen_n[len(wall):],
+                                    gen_pass[len(wall):], ball)
+    assert cut_floor_only == pytest.approx(np.zeros(len(moves)))
+
+
+def test_stage_limits_the_corner_vertex_by_the_wall_pass_generating_point():
+    """The same corner through ``run``: a floor pass ends at X4.9 where a pass along the wall foot
+    starts; the wall pass beside them has its generating point on the wall x 10, 6 mm up (the
+    shank's side 0.1 mm from it). The errors ask for 500 µm along +x; with the gouge limit the
+    vertex moves the 100 µm clearance, without it the 300 µm move limit."""
+    from stages import correct
+    text = b"\n".join([b"%", b"O0001", b"G90 G17 G21", b"T1 M6", b"S8000 M3", b"G0 X0. Y0. Z10.",
+                       b"G1 Z0. F500", b"X4.9", b"Y2.", b"Z6.", b"G0 Z50.", b"M30", b"%", b""])
+    blocks, _ = parse_program(text, "corner.nc", "p")
+    passes = split_blocks(blocks, SPLIT)
+    y1, z1 = passes.column("y1_mm").to_numpy(), passes.column("z1_mm").to_numpy()
+    x1 = passes.column("x1_mm").to_numpy()
+    x0 = passes.column("x0_mm").to_numpy()
+    floor = np.flatnonzero((x0 == 0.0) & (x1 == 4.9) & (z1 == 0.0))[0]
+    normals = np.tile([0.0, 0.0, 1.0], (passes.num_rows, 1))
+    err = np.zeros(passes.num_rows)
+    normals[floor + 1], err[floor + 1] = [0.6, 0.0, 0.8], -300.0     # along the wall foot: overcut
+    wall = floor + 2
+    generating = pa.table({"program_id": ["p"], "pass_id": passes.column("pass_id").take([wall]),
+                           "gen_x_mm": [10.0], "gen_y_mm": [0.0], "gen_z_mm": [6.0],
+                           "nx": [-1.0], "ny": [0.0], "nz": [0.0]})
+    errors = _errors(passes, err, normals).filter(pa.array(np.arange(passes.num_rows) != wall))
+    inputs = {"blocks": blocks, "passes": passes, "errors": errors, "generating": generating}
+    tool = {"type": "ball", "diameter_mm": 10.0, "stickout_mm": 40.0}
+    vertex = int(passes.column("block_end").to_numpy()[floor])      # its last block (inclusive)
+    for limit, expect in ((True, 100.0), (False, 300.0)):
+        out = correct.run(inputs, {"correct": {"max_move_um": 300.0, "gouge_limit": limit}, "tool": tool})["corrected"]
+        row = int(np.flatnonzero(out.column("block_no").to_numpy() == vertex)[0])
+        move = (np.array([out.column(c)[row].as_py() for c in ("x_new_mm", "y_new_mm", "z_new_mm")])
+                - [4.9, 0.0, 0.0]) * 1000.0
+        assert move == pytest.approx([expect, 0.0, 0.0], abs=0.01)
+        assert out.column("gouge_limit_um")[row].as_py() == pytest.approx(400.0 if limit else 0.0, abs=0.01)

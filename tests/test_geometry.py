@@ -186,3 +186,32 @@ def test_design_surface_load_errors(tmp_path):
     bad.write_text("solid x\nthis is not an stl\n")
     with pytest.raises(InputError, match="bad.stl"):
         geo.load_design_surface(bad)
+
+
+@pytest.mark.parametrize("kind,rc", [("ball", 3.0), ("bull", 1.0), ("flat", 0.0)])
+def test_tool_clearance_matches_a_dense_sample_of_the_body(kind, rc):
+    """Distance and direction from the tool body against the nearest of ~200,000 points sampled on
+    the body's surface (profile swept round the axis, flat end disk, shank to 20 mm)."""
+    shape = geo.ToolShape(kind, 3.0, rc, 40.0)
+    q = np.linspace(0, np.pi / 2, 200)
+    prof = [np.stack([(3.0 - rc) + rc * np.sin(q), rc * (1 - np.cos(q))], 1)]
+    prof.append(np.stack([np.full(200, 3.0), np.linspace(rc, 20.0, 200)], 1))
+    prof.append(np.stack([np.linspace(0, 3.0 - rc, 100), np.zeros(100)], 1))
+    prof = np.vstack(prof)
+    th = np.linspace(0, 2 * np.pi, 360, endpoint=False)
+    body = np.stack([np.outer(prof[:, 0], np.cos(th)).ravel(), np.outer(prof[:, 0], np.sin(th)).ravel(),
+                     np.repeat(prof[:, 1], th.size)], 1)
+    rng = np.random.default_rng(3)
+    pts = rng.uniform([-6, -6, -3], [6, 6, 15], (400, 3))
+    d, u = shape.clearance(pts)
+    dist, idx = cKDTree(body).query(pts)
+    outside = d > 0.05
+    np.testing.assert_allclose(d[outside], dist[outside], atol=0.03)
+    # the direction points from the nearest body point to the point (a millimetre away, where the
+    # sample's spacing blurs it by less than a few degrees)
+    far = d > 1.0
+    ref = (pts[far] - body[idx[far]]) / dist[far, None]
+    assert np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", ref, u[far]), -1, 1))).max() < 4.0
+    # inside the body: negative
+    inside = (np.hypot(pts[:, 0], pts[:, 1]) < shape.profile_radius(np.clip(pts[:, 2], 0, None)) - 0.05) & (pts[:, 2] > 0.05)
+    assert (d[inside] < 0).all() and inside.sum() > 20
