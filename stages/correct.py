@@ -123,7 +123,7 @@ GOUGE_INSIDE_MM = 0.02
 # on a floor, and every point within _FLOOR_DEG + _FLAT_DEG ≤ SAME_SURFACE_DEG of +z is its surface
 _FLOOR_DEG = 10.0
 _FLAT_DEG = 20.0
-# vertices checked at once (pairs within the tool's reach: ~100–300 per vertex on the sample)
+# vertices checked at once (candidate pairs: ~10 per vertex on the sample mould)
 _GOUGE_CHUNK = 8192
 _PLANE_AXES_LUT = np.zeros((20, 3), np.int64)
 for _pl, _ax in _PLANE_AXES.items():
@@ -308,7 +308,9 @@ class _NearTool:
     def pairs(self, tips, reach, own_normals):
         """(i, j): tip index, point index of every candidate pair."""
         R, rc = self.shape.radius_mm, self.shape.corner_mm
-        on_floor = (own_normals[:, :, 2].min(axis=1) >= np.cos(np.radians(_FLOOR_DEG)))
+        present = np.abs(own_normals).sum(axis=2) > 0
+        on_floor = present.any(axis=1) & (np.where(present, own_normals[:, :, 2], 1.0).min(axis=1)
+                                          >= np.cos(np.radians(_FLOOR_DEG)))
         out = []
         if self.steep.size:
             mid = (tips + [0.0, 0.0, rc + self.half]) * [1.0, 1.0, self.scale]
