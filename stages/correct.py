@@ -81,7 +81,7 @@ import pyarrow as pa
 from stages import InputError
 
 NAME = "correct"
-VERSION = "9"
+VERSION = "10"
 INPUTS = ("blocks", "passes", "errors", "generating")
 OUTPUTS = ("corrected",)
 # only the clip limit and the relaxation of rounds 2… change the table; tol_um and max_iter steer
@@ -104,6 +104,15 @@ NORMAL_TOL_DEG = 2.0
 # sample's pocket wall (normals 2.5° apart where the wall's slope changes) a 4 µm difference asked
 # for ~100 µm, hit the move limit and lifted the top of the wall line instead of moving it in
 REFINE_MAX_RATIO = 2.0
+# the least-squares refinement does not slide a vertex along a path that turns there by less than
+# this (vertex_moves): on the sample's row y 61.2, down a convex profile, passes 0.025–0.7 mm long
+# have normals 4–6° apart in the plane of the path (−155 and −130 µm); realising both took
+# Δe / sin θ ≈ 300 µm along the path against ~100 µm along the normals, alternating from vertex to
+# vertex (a pass's surface follows both its ends, the per-vertex solve assumes it follows one),
+# and the rounds folded the row (the virtual machine: −175 → −700 µm after three). A corner of the
+# path (a ball rounding a wall foot: 2–3 vertices over 90°, a floor pass turning up a wall) turns
+# by far more and keeps the refinement that realises both errors there.
+PATH_TURN_DEG = 10.0
 # smallest step fraction of a vertex whose rounds do not contract (see correct_once)
 MIN_RELAX = 1.0 / 16
 # rounds 2…: the secant step (``correct.accelerate``) takes at most this many times the plain step
@@ -140,7 +149,7 @@ def _xyz(table: pa.Table, names) -> np.ndarray:
     return np.stack([_col(table, c) for c in names], axis=1)
 
 
-def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True):
+def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True, along_path=None):
     """Move of vertices shared by passes a and b (para 0084, refined by least squares), vectorised.
 
     The para 0084 move points along E'a + E'b with the least-squares magnitude. That realises both
@@ -159,7 +168,11 @@ def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True):
     normals is within the accuracy of the predicted normals and would amplify error noise by
     1/sin(angle)); there the para 0084 move (the mean) stays. The refinement is limited to
     :data:`REFINE_MAX_RATIO` times the larger error (a vertex is not moved far along the direction
-    both passes barely see).
+    both passes barely see). Where the path runs on nearly straight through the vertex
+    (``along_path``: its unit direction there, zero where it turns by :data:`PATH_TURN_DEG` or
+    more), the refinement keeps out of that direction: normals that differ only along the path are
+    a profile's own curvature, and realising their different errors by sliding the vertex along
+    its passes changes their lengths, not their surfaces (see :data:`PATH_TURN_DEG`).
 
     Parameters
     ----------
@@ -167,6 +180,8 @@ def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True):
     n_a, n_b : (v, 3) float, unit surface normals (out of material)
     has_a, has_b : (v,) bool, whether the pass has a prediction (else it does not count)
     refine : bool, add the least-squares refinement (False: the para 0084 move alone)
+    along_path : (v, 3) float or None, unit path direction the refinement must not move along
+        (zero rows: no restriction)
 
     Returns
     -------
@@ -207,6 +222,8 @@ def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True):
     coef = np.einsum("vki,vk->vi", vec, r) * gain                           # per mode
     ab = np.einsum("vki,vi->vk", vec, coef)                                 # (α, β)
     extra = ab[:, :1] * na + ab[:, 1:] * nb
+    if along_path is not None:
+        extra -= np.einsum("ij,ij->i", extra, along_path)[:, None] * along_path
     cap = REFINE_MAX_RATIO * np.maximum(np.abs(wa * err_a), np.abs(wb * err_b))
     size = np.linalg.norm(extra, axis=1)
     extra *= np.minimum(1.0, cap / np.maximum(size, 1e-30))[:, None]
@@ -359,6 +376,20 @@ def _errors_per_pass(passes: pa.Table, errors: pa.Table):
     return err, nrm, has, defl
 
 
+def _straight_through(pstart, pend):
+    """(P + 1, 3) unit path direction at every node (start of pass k, end of the last) where the
+    path turns there by less than :data:`PATH_TURN_DEG`; zero rows at corners and at the ends."""
+    d = pend - pstart
+    length = np.linalg.norm(d, axis=1)
+    d = d / np.where(length > 1e-12, length, np.inf)[:, None]
+    d_in = np.vstack([np.zeros((1, 3)), d])            # the pass ending at the node
+    d_out = np.vstack([d, np.zeros((1, 3))])           # the pass starting there
+    straight = np.einsum("ij,ij->i", d_in, d_out) > np.cos(np.radians(PATH_TURN_DEG))
+    t = d_in + d_out
+    t /= np.maximum(np.linalg.norm(t, axis=1), 1e-12)[:, None]
+    return np.where(straight[:, None], t, 0.0)
+
+
 def _generating_points(generating: pa.Table, passes: pa.Table):
     """Generating points (mm), unit normals and pass index (into ``passes`` sorted by pass id)."""
     if generating.num_rows == 0 or passes.num_rows == 0:
@@ -467,7 +498,8 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
         db, da = np.vstack([np.zeros((1, 3)), defl]), np.vstack([defl, np.zeros((1, 3))])
         d_mean = (db * has_b[:, None] + da * has_a[:, None]) / np.maximum(has_b.astype(float) + has_a, 1.0)[:, None]
         node_move = vertex_moves(eb - np.einsum("ij,ij->i", d_mean, nb_), nb_, has_b,
-                                 ea - np.einsum("ij,ij->i", d_mean, na_), na_, has_a) - d_mean
+                                 ea - np.einsum("ij,ij->i", d_mean, na_), na_, has_a,
+                                 along_path=_straight_through(pstart, pend)) - d_mean
         node_xyz = np.vstack([pstart, pend[-1:]])
         node_normal = nb_ * has_b[:, None] + na_ * has_a[:, None]
         # vertex → node: the last pass starting at or before the block

@@ -1128,3 +1128,32 @@ def test_stage_limits_the_corner_vertex_by_the_wall_pass_generating_point():
                 - [4.9, 0.0, 0.0]) * 1000.0
         assert move == pytest.approx([expect, 0.0, 0.0], abs=0.01)
         assert out.column("gouge_limit_um")[row].as_py() == pytest.approx(400.0 if limit else 0.0, abs=0.01)
+
+
+def test_normals_a_few_degrees_apart_do_not_slide_the_vertex_along_a_straight_path():
+    """The sample's row y 61.2 down a convex profile: passes 8610 and 8611 (normals 4.8° apart in
+    the plane of the path, −154.8 and −129.8 µm; the path turns 4.7° at the vertex). Realising both
+    takes (Δe/2)/sin(θ/2) = 298 µm along the path; with the path direction the move keeps out of
+    it: along the path only the para 0084 move's own tilt (≤ Δe/2·sin(θ/2) + 1 µm), along the mean
+    normal its least-squares magnitude. Across a path's corner (the same normals, the path turning
+    90°) the refinement realises both errors."""
+    na = np.array([[-0.661, 0.0, 0.750]])
+    nb = np.array([[-0.596, 0.0, 0.803]])
+    na /= np.linalg.norm(na)
+    nb /= np.linalg.norm(nb)
+    ea, eb = np.array([-154.767]), np.array([-129.765])
+    yes = np.array([True])
+    half = np.arccos(na[0] @ nb[0]) / 2
+    assert abs(ea[0] - eb[0]) / 2 / np.sin(half) == pytest.approx(298, abs=2)   # what exact would slide
+    mean_n = (na + nb)[0] / np.linalg.norm(na + nb)
+    path = np.cross(mean_n, [0.0, 1.0, 0.0])[None]                  # ⊥ both normals' mean, in their plane
+    m = vertex_moves(ea, na, yes, eb, nb, yes, along_path=path)[0]
+    assert abs(m @ path[0]) <= abs(ea[0] - eb[0]) / 2 * np.sin(half) + 1.0
+    assert m @ mean_n == pytest.approx(-(ea[0] + eb[0]) / 2 / np.cos(half), abs=2.0)
+    # the nodes of a polyline: straight through (4.7°) restricted, a 90° corner and the ends free
+    pts = np.array([[0.0, 0, 0], [0.5, 0, -0.4], [1.0, 0, -0.84], [1.0, 0, 2.0]])
+    from stages.correct import _straight_through
+    t = _straight_through(pts[:-1], pts[1:])
+    assert np.allclose(t[[0, 2, 3]], 0.0) and np.linalg.norm(t[1]) == pytest.approx(1.0)
+    free = vertex_moves(ea, na, yes, eb, nb, yes, along_path=np.zeros((1, 3)))[0]
+    assert np.abs([free @ na[0] + ea[0], free @ nb[0] + eb[0]]).max() < 0.05 * abs(ea[0])
