@@ -269,7 +269,8 @@ def gouge_limit(total_um, tips, own, own_normals, gen_xyz, gen_normals, gen_pass
     cos_same = np.cos(np.radians(SAME_SURFACE_DEG))
     for lo in range(0, moving.size, _GOUGE_CHUNK):
         v = moving[lo:lo + _GOUGE_CHUNK]
-        i, j = near.pairs(tips[v], size[v] / 1000.0, own_normals[v])
+        i, j = near.pairs(tips[v], size[v] / 1000.0, own_normals[v],
+                          np.hypot(out[v, 0], out[v, 1]) / 1000.0)
         i = v[i]
         # the exact clearance first (few pairs are within reach), then the pass filters
         d0, u = shape.clearance(gen_xyz[j] - tips[i])
@@ -322,17 +323,20 @@ class _NearTool:
         j = np.fromiter((k for h in hits for k in h), np.int64, int(counts.sum()))
         return np.repeat(rows, counts), (j if index is None else index[j])
 
-    def pairs(self, tips, reach, own_normals):
-        """(i, j): tip index, point index of every candidate pair."""
+    def pairs(self, tips, reach, own_normals, reach_xy):
+        """(i, j): tip index, point index of every candidate pair. ``reach`` (mm) is the size of the
+        move, ``reach_xy`` its horizontal part: the shank's side (direction to a point horizontal)
+        is reached only by that."""
         R, rc = self.shape.radius_mm, self.shape.corner_mm
         present = np.abs(own_normals).sum(axis=2) > 0
         on_floor = present.any(axis=1) & (np.where(present, own_normals[:, :, 2], 1.0).min(axis=1)
                                           >= np.cos(np.radians(_FLOOR_DEG)))
         out = []
-        if self.steep.size:
-            mid = (tips + [0.0, 0.0, rc + self.half]) * [1.0, 1.0, self.scale]
-            hits = self.box_steep.query_ball_point(mid, R + reach, p=np.inf, return_sorted=False)
-            out.append(self._flat(hits, np.arange(len(tips)), self.steep))
+        side = np.flatnonzero(reach_xy > _EPS_UM / 1000.0)
+        if self.steep.size and side.size:
+            mid = (tips[side] + [0.0, 0.0, rc + self.half]) * [1.0, 1.0, self.scale]
+            hits = self.box_steep.query_ball_point(mid, R + reach_xy[side], p=np.inf, return_sorted=False)
+            out.append(self._flat(hits, side, self.steep))
         for rows, tree, index in ((np.flatnonzero(on_floor), self.ball_steep, self.steep),
                                   (np.flatnonzero(~on_floor), self.ball_all, None)):
             if rows.size and tree.n:
