@@ -455,3 +455,51 @@ def test_a_turning_chain_drawn_in_one_draw_equals_its_passes_drawn_one_by_one():
     both = np.isfinite(one) & np.isfinite(each)
     assert both.sum() > 1000
     assert np.max(np.abs(one[both] - each[both])) < 2 * cut_filter.fine_tolerance(20)
+
+
+def test_a_pass_climbing_a_wall_beside_corner_rest_material_is_found_on_the_wall(tmp_path):
+    """A ball climbs the wall x = 0 (0.05 mm of finishing stock, the design model's wall under
+    it) 0.9 mm from the other wall of a pocket corner, where the semi-finishing left a chamfer of
+    rest material (x + y > 0.9) that the ball's side cuts 0.86 mm deep at 45° from the wall.
+    From below the wall is edge-on, so the view along the normal is aimed by the engaged strip
+    around the tool; the mean of all of it points between the walls (the sample's corner: φ 41°,
+    nothing seen, the pass lost). With the design model the strip's points on the model aim it:
+    the generating point is on the wall, q = 90°, normal −x (closed form: a vertical wall)."""
+    import trimesh
+    R, a_e, Y_wall = 5.0, 0.05, 5.9
+    xc = -R                                         # tip (= ball axis) x: the side on the design wall
+    walls = [trimesh.creation.box(bounds=[[0.0, -20, -30], [20, 20, 0]]),
+             trimesh.creation.box(bounds=[[-30, Y_wall, -30], [20, 20, 0]])]
+    design = trimesh.util.concatenate(walls)
+    chamfer = trimesh.convex.convex_hull(np.array([(x, y, z) for x, y in ((0.0, 0.9), (0.0, Y_wall), (-5.0, Y_wall))
+                                                   for z in (-30.0, 0.0)]))
+    stock = trimesh.util.concatenate([trimesh.creation.box(bounds=[[-a_e, -20, -30], [20, 20, 0]]), walls[1], chamfer])
+    design.export(tmp_path / "design.stl")
+    stock.export(tmp_path / "stock.stl")
+    # one climb split into three passes (as the split stage cuts a long block); the middle one is
+    # predicted: its ends are its neighbours' on the same line
+    zs = np.array([-20.0, -15.0, -10.0, -5.0])
+    k = 3
+    passes = pa.table({
+        "program_id": ["corner"] * k, "pass_id": pa.array(range(k), pa.int32()),
+        "block_no": pa.array([0] * k, pa.int32()), "line_no": pa.array([1] * k, pa.int32()),
+        "motion": pa.array([1] * k, pa.int8()),
+        "x0_mm": [xc] * k, "y0_mm": [0.0] * k, "z0_mm": zs[:-1], "x1_mm": [xc] * k, "y1_mm": [0.0] * k,
+        "z1_mm": zs[1:], "feed_mm_min": [3000.0] * k, "spindle_rpm": [12000.0] * k,
+        "tool": pa.array([1] * k, pa.int32()), "t_start_s": np.arange(k, dtype=float),
+        "t_end_s": np.arange(1, k + 1, dtype=float)})
+    tool = {"type": "ball", "diameter_mm": 2 * R, "flutes": 2, "stickout_mm": 40.0}
+    params = {"tool": tool, "render": {"backend": "auto", "px_per_mm": 20}}
+    cf = pa.table({"pass_id": pa.array([1], pa.int32()), "is_cutting": [True],
+                   "pred_x_mm": [xc], "pred_y_mm": [0.0], "pred_z_mm": [-12.5]})
+    ap = pa.table({"pass_id": pa.array([1], pa.int32()), "predict": [True]})
+    inputs = {"passes": passes, "stock": str(tmp_path / "stock.stl"), "cut_filter": cf, "angle_prune": ap}
+    blind = generating.run(inputs, params)["generating"].to_pylist()[0]
+    g = generating.run({**inputs, "nominal": str(tmp_path / "design.stl")}, params)["generating"].to_pylist()[0]
+    print(f"\nwithout the design model: view {blind['view']}, φ {blind['rotation_deg']}; with it: view "
+          f"{g['view']}, {g['n_px']} px, q {g['contact_deg']:.2f}°, φ {g['rotation_deg']:.2f}°, "
+          f"C ({g['gen_x_mm']:.3f}, {g['gen_y_mm']:.3f}, {g['gen_z_mm']:.3f})")
+    assert g["view"] == "normal" and g["n_px"] > 20
+    assert abs((g["rotation_deg"] + 180.0) % 360.0 - 180.0) < 3.0 and abs(g["contact_deg"] - 90.0) < 3.0
+    assert g["nx"] < -0.99
+    assert abs(g["gen_x_mm"]) < 0.05 and abs(g["gen_y_mm"]) < 0.3
