@@ -145,7 +145,10 @@ class Run:
                 params.setdefault(head, {})[sub] = val[sub]
             else:
                 params[head] = val
-        return params
+        # a stage may use some values only under a switch (parse: the split length only with
+        # correct.via_points): the values it does not use do not change its cache key
+        used = getattr(stage, "used_params", None)
+        return used(params) if used is not None else params
 
     def _resolve_files(self, val):
         """Make file references in parameters absolute (tool.profile, machine.frf.table)."""

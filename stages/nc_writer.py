@@ -15,6 +15,19 @@ the first ``%``) says what changed; it carries no date so the output is determin
 (count, order, motion kinds, planes) at the new coordinates. :func:`write_ln_program` writes the
 corrected path as Heidenhain-style ``LN`` blocks with surface normals, :func:`write_comp_table` a
 contact-angle compensation table (radius deviation per angle, like a 3D-ToolComp ``.3DTC`` file).
+
+Via points (``correct.via_points``, off by default): a straight cut longer than the split stage's
+``max_pass_mm`` is split into several passes whose errors differ along it (on the sample mould a
+20 mm climb of a pocket wall beside a corner: 193, 111, 72, 62, 26 µm bottom up), but a program
+whose coordinates alone change can only move its two ends, so the middle passes are moved by the
+straight interpolation of the end moves. :func:`via_blocks` cuts such a block into the split
+stage's pieces in the ``blocks`` table (the parse stage does it when the option is on: the passes
+stay the same, the correct stage then moves every piece's end); :func:`write_program` writes the
+moved piece ends as ``G1 X Y Z`` lines inserted before the block's own line, only where they leave
+the straight line between the written ends by more than the output grid, so a program without
+error still comes out byte-identical. Only absolute metric G1 lines with no words but N, G1, X, Y,
+Z and F are cut (an inserted line must not repeat an M, S, T or G code, and an F word moves onto
+the first inserted line).
 """
 from __future__ import annotations
 
@@ -36,6 +49,91 @@ def _table_np(table: pa.Table, name: str, dtype=float):
     return table.column(name).to_numpy(zero_copy_only=False).astype(dtype)
 
 
+_VIA_LETTERS = frozenset(b"NGXYZF")
+
+
+def via_blocks(data: bytes, blocks: pa.Table, max_mm: float) -> pa.Table:
+    """``blocks`` with every long plain G1 line cut into the split stage's equal pieces.
+
+    Parameters
+    ----------
+    data : the program bytes ``blocks`` was parsed from
+    blocks : its ``blocks`` table (one row per block, one block per line)
+    max_mm : ``split.max_pass_mm``: a line of length L becomes ceil(L / max_mm) blocks, exactly the
+        pieces :func:`stages.split._split_long` makes, so the passes do not change
+
+    Returns
+    -------
+    ``blocks`` table: the pieces of a cut line share its ``line_no`` (every piece but the last is a
+    via point :func:`write_program` may insert); ``block_no`` is renumbered in order.
+    """
+    n = blocks.num_rows
+    if n == 0 or max_mm <= 0:
+        return blocks
+    motion = _table_np(blocks, "motion", np.int64)
+    line = _table_np(blocks, "line_no", np.int64) - 1
+    p0 = np.stack([_table_np(blocks, c) for c in ("x0_mm", "y0_mm", "z0_mm")], 1)
+    p1 = np.stack([_table_np(blocks, c) for c in ("x1_mm", "y1_mm", "z1_mm")], 1)
+    k = np.ceil(np.linalg.norm(p1 - p0, axis=1) / max_mm - 1e-9).astype(np.int64)
+    cut = ((motion == 1) & (k > 1) & ~_table_np(blocks, "incremental", bool) & ~_table_np(blocks, "inch", bool))
+    # one block on the line, and only words an inserted line may carry
+    cut &= np.bincount(line, minlength=line.max() + 1)[line] == 1
+    if cut.any():
+        sc = _scan(data)
+        raw = np.frombuffer(data, np.uint8)
+        letter = sc["letter"]
+        bad = ~np.isin(letter, np.frombuffer(bytes(_VIA_LETTERS), np.uint8))
+        # G words other than G1 / G01 (a G90, G41 … on the line would be repeated or lost)
+        g = np.flatnonzero(letter == ord("G"))
+        gval = [raw[a:b].tobytes() for a, b in zip(sc["vstart"][g], sc["vend"][g])]
+        bad[g] = [v not in (b"1", b"01") for v in gval]
+        bad_line = np.zeros(int(max(line.max(), sc["line"].max() if sc["line"].size else 0)) + 1, bool)
+        bad_line[sc["line"][bad]] = True
+        cut &= ~bad_line[line]
+    if not cut.any():
+        return blocks
+    reps = np.where(cut, k, 1)
+    idx = np.repeat(np.arange(n), reps)
+    first = np.concatenate(([0], np.cumsum(reps)[:-1]))
+    j = (np.arange(idx.size) - first[idx])[:, None]
+    kk = reps[idx][:, None]
+    d = p1[idx] - p0[idx]
+    q0 = p0[idx] + d * (j / kk)
+    q1 = np.where(j + 1 == kk, p1[idx], p0[idx] + d * ((j + 1) / kk))
+    out = blocks.take(pa.array(idx))
+    cols = dict(zip(("x0_mm", "y0_mm", "z0_mm", "x1_mm", "y1_mm", "z1_mm"), (*q0.T, *q1.T)))
+    cols["block_no"] = np.arange(1, idx.size + 1, dtype=np.int32)
+    for name, val in cols.items():
+        i = out.schema.get_field_index(name)
+        out = out.set_column(i, out.schema.field(name), pa.array(val, out.schema.field(name).type))
+    return out
+
+
+def _via_rows(blocks: pa.Table, corrected: pa.Table):
+    """Which ``corrected`` rows are via points (a piece of a cut line before its last) and which of
+    them are written: those whose line's pieces leave the straight line between the new ends (on
+    the 0.001 mm grid) — all the pieces of such a line, else none."""
+    n = corrected.num_rows
+    line = _table_np(corrected, "line_no", np.int64)
+    via = np.zeros(n, bool)
+    via[:-1] = line[:-1] == line[1:]
+    if not via.any():
+        return via, via
+    new = np.stack([_table_np(corrected, c) for c in ("x_new_mm", "y_new_mm", "z_new_mm")], 1)
+    # the written ends: the row before the line's first piece and the line's own row
+    group = np.cumsum(np.concatenate(([True], line[1:] != line[:-1]))) - 1
+    g_first = np.flatnonzero(np.concatenate(([True], group[1:] != group[:-1])))
+    g_last = np.concatenate((g_first[1:] - 1, [n - 1]))
+    a = new[np.maximum(g_first - 1, 0)][group]
+    b = new[g_last][group]
+    ab = b - a
+    t = np.einsum("ij,ij->i", new - a, ab) / np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-30)
+    dev = np.linalg.norm(a + ab * np.clip(t, 0, 1)[:, None] - new, axis=1)
+    off = np.zeros(g_first.size, bool)
+    np.logical_or.at(off, group, via & (dev > 0.5e-3))
+    return via, via & off[group]
+
+
 def write_program(data: bytes, blocks: pa.Table, corrected: pa.Table, *, source_sha256: str | None = None,
                   max_move_um: float | None = None) -> bytes:
     """The corrected program text.
@@ -54,6 +152,10 @@ def write_program(data: bytes, blocks: pa.Table, corrected: pa.Table, *, source_
     """
     if corrected.num_rows == 0:
         return data
+    via, via_w = _via_rows(blocks, corrected)
+    if via.any():
+        corrected = corrected.filter(pa.array(~via | via_w))
+        via = via_w[~via | via_w]
     lines = data.split(b"\n")
     bno = _table_np(blocks, "block_no", np.int64)
     cbn = _table_np(corrected, "block_no", np.int64)
@@ -73,7 +175,7 @@ def write_program(data: bytes, blocks: pa.Table, corrected: pa.Table, *, source_
     sc = _scan(data)
     # words of the motion lines: row of each word (−1: not a motion line)
     line_row = np.full(len(lines) + 1, -1, np.int64)
-    line_row[line_idx] = np.arange(n)
+    line_row[line_idx[~via]] = np.flatnonzero(~via)
     w_row = line_row[sc["line"]]
     on_row = w_row >= 0
     wl = {k: v[on_row] for k, v in sc.items() if k != "line_start"}
@@ -105,6 +207,9 @@ def write_program(data: bytes, blocks: pa.Table, corrected: pa.Table, *, source_
 
     present, orig_val, dec, widx = by_letter(_AXES)
     dec = np.where(inch[:, None] & ~present, np.maximum(dec, 4), dec)
+    # a via point is written with the decimals of its line's own words
+    own_row = np.flatnonzero(~via)[np.minimum(np.searchsorted(np.flatnonzero(~via), np.arange(n)), (~via).sum() - 1)]
+    dec[via] = dec[own_row[via]]
     unit = 10.0 ** -dec                                      # resolution in the block's units
     # position the control holds after each block, on the written grid (mm)
     k = np.rint(target / scale[:, None] / unit)
@@ -120,6 +225,8 @@ def write_program(data: bytes, blocks: pa.Table, corrected: pa.Table, *, source_
     first = np.arange(n) == 0
     # an axis the program has not set yet stays unset; the first block has nothing to differ from
     add = ~present & defined & ~first[:, None] & np.where(incr[:, None], np.abs(inc_val) > tol, moved_from_held)
+    change &= ~via[:, None]              # via points become lines of their own (below)
+    add &= ~via[:, None]
     e_row, e_col = np.nonzero(change | add)
     e_val = want[e_row, e_col]
     e_dec = dec[e_row, e_col]
@@ -168,7 +275,7 @@ def write_program(data: bytes, blocks: pa.Table, corrected: pa.Table, *, source_
         e_dec = np.concatenate([e_dec, np.concatenate(x_decs)])
         e_letter = np.concatenate([e_letter, np.frombuffer(b"IJKR", np.uint8)[xc]])
         e_word = np.concatenate([e_word, a_widx[xr, xc]])
-    if e_row.size == 0:
+    if e_row.size == 0 and not via.any():
         return data
 
     # replacements of present words (value span), insertions of absent ones (letter + value)
@@ -197,16 +304,29 @@ def write_program(data: bytes, blocks: pa.Table, corrected: pa.Table, *, source_
     pre[:, 1] = np.where(~rep, e_letter, 0)
     suf = np.where(~rep & ~lead & sep, 32, 0).astype(np.uint8)[:, None]
     body = np.hstack([pre, body, suf])
-    order = np.lexsort((rank, start))
+    seq = np.zeros(m, np.int64)
+    vr = np.flatnonzero(via)
+    if vr.size:
+        v_body = _via_lines(data, sc, wl, w_row, own_row[vr], held[vr], dec[vr], defined[vr], line_idx[vr])
+        width = max(body.shape[1], v_body.shape[1])
+        body = np.vstack([np.pad(body, ((0, 0), (width - body.shape[1], 0))),
+                          np.pad(v_body, ((0, 0), (0, width - v_body.shape[1])))])
+        start = np.concatenate([start, sc["line_start"][line_idx[vr]]])
+        end = np.concatenate([end, sc["line_start"][line_idx[vr]]])
+        rank = np.concatenate([rank, np.full(vr.size, -1)])
+        seq = np.concatenate([seq, vr])
+    order = np.lexsort((seq, rank, start))
     out = _splice(data, start[order], end[order], body[order])
 
-    moved = int(np.count_nonzero(np.bincount(e_row, minlength=n)))
+    moved = int(np.count_nonzero(np.bincount(e_row, minlength=n)[~via]))
+    n_lines = int((~via).sum())
     move_um = _table_np(corrected, "move_um")
     clipped = int(_table_np(corrected, "clipped", bool).sum())
     rounds = int(_table_np(corrected, "iteration", np.int64).max())
     sha = source_sha256 or hashlib.sha256(data).hexdigest()
-    text = (f"(CORRECTED PROGRAM - MACHINING ERROR COMPENSATION - {moved} OF {n} MOTION BLOCKS CHANGED"
-            f" - MAX MOVE {float(move_um.max()):.1f} UM - {clipped} CLIPPED"
+    text = (f"(CORRECTED PROGRAM - MACHINING ERROR COMPENSATION - {moved} OF {n_lines} MOTION BLOCKS CHANGED"
+            + (f" - {vr.size} VIA LINES INSERTED" if vr.size else "")
+            + f" - MAX MOVE {float(move_um.max()):.1f} UM - {clipped} CLIPPED"
             + (f" AT {max_move_um:g} UM" if max_move_um is not None else "")
             + f" - {rounds} ROUND{'S' if rounds != 1 else ''} - SOURCE SHA256 {sha.upper()})").encode("ascii")
     at = _header_line(lines)
@@ -222,6 +342,44 @@ def write_program(data: bytes, blocks: pa.Table, corrected: pa.Table, *, source_
     if hpos >= len(out) and not out.endswith(b"\n"):
         return out + eol + text
     return out[:hpos] + text + eol + out[hpos:]
+
+
+def _via_lines(data, sc, wl, w_row, own, held, dec, defined, line) -> np.ndarray:
+    """Byte rows (0-padded) of the inserted via lines ``G1 X.. Y.. Z..`` (+ the line's F word on
+    its first via line), spaced like the line (0-based ``line``, its row ``own``) they precede,
+    with its line ending."""
+    m = own.size
+    raw = np.frombuffer(data, np.uint8)
+    n_rows = int(max(own.max(), w_row.max() if w_row.size else 0)) + 1
+    spaced = np.zeros(n_rows, bool)
+    np.logical_or.at(spaced, w_row, wl["blank_before"] & ~wl["first"])
+    sep = np.where(spaced[own], 32, 0).astype(np.uint8)[:, None]
+    parts = [np.tile(np.frombuffer(b"G1", np.uint8), (m, 1))]
+    for j, ch in enumerate(_AXES):
+        val = _format(held[:, j], dec[:, j], np.zeros(m, bool), np.ones(m, bool))
+        val[~defined[:, j]] = 0
+        lead = np.where(defined[:, j], ord(ch), 0).astype(np.uint8)[:, None]
+        parts += [np.where(defined[:, j, None], sep, 0).astype(np.uint8), lead, val]
+    # the line's F word goes onto its first via line (the feed would change a few lines late)
+    first_via = np.concatenate(([True], own[1:] != own[:-1]))
+    f_sel = np.flatnonzero(wl["letter"] == ord("F"))
+    f_of_row = np.full(n_rows, -1, np.int64)
+    f_of_row[w_row[f_sel]] = f_sel
+    fw = np.where(first_via, f_of_row[own], -1)
+    if (fw >= 0).any():
+        s0, s1 = wl["wstart"][np.maximum(fw, 0)], wl["vend"][np.maximum(fw, 0)]
+        flen = np.where(fw >= 0, s1 - s0, 0)
+        k = np.arange(int(flen.max()))[None, :]
+        fbytes = np.where(k < flen[:, None], raw[np.minimum(s0[:, None] + k, raw.size - 1)], 0).astype(np.uint8)
+        parts += [np.where(fw[:, None] >= 0, sep, 0).astype(np.uint8), fbytes]
+    ls = sc["line_start"]
+    nl = ls[np.minimum(line + 1, ls.size - 1)] - 1          # the line's newline byte
+    crlf = (line + 1 < ls.size) & (raw[np.maximum(nl - 1, 0)] == 13)
+    eol = np.zeros((m, 2), np.uint8)
+    eol[:, 0] = np.where(crlf, 13, 10)
+    eol[:, 1] = np.where(crlf, 10, 0)
+    parts.append(eol)
+    return np.hstack(parts)
 
 
 def _splice(data: bytes, start, end, body) -> bytes:
@@ -392,16 +550,23 @@ def reverse_check(text: bytes, blocks: pa.Table, corrected: pa.Table, path: str 
     """
     pid = program_id or (blocks.column("program_id")[0].as_py() if blocks.num_rows else "p")
     new_blocks, _ = parse_program(text, path, pid)
+    # the blocks the program should have: the source's, less the via points not written
+    via, via_w = _via_rows(blocks, corrected) if corrected.num_rows else (np.zeros(0, bool),) * 2
+    if via.any():
+        drop = _table_np(corrected, "block_no", np.int64)[via & ~via_w]
+        blocks = blocks.filter(pa.array(~np.isin(_table_np(blocks, "block_no", np.int64), drop)))
+        corrected = corrected.filter(pa.array(~via | via_w))
     rep = {"n_blocks": (blocks.num_rows, new_blocks.num_rows), "max_dev_um": 0.0, "ok": True, "message": ""}
     if new_blocks.num_rows != blocks.num_rows:
         rep.update(ok=False, message=f"{new_blocks.num_rows} blocks, source has {blocks.num_rows}")
         return rep
-    for c in ("block_no", "motion", "plane", "inch", "incremental"):
+    for c in ("motion", "plane", "inch", "incremental"):
         if not np.array_equal(_table_np(new_blocks, c, object), _table_np(blocks, c, object)):
             rep.update(ok=False, message=f"column {c} differs from the source")
             return rep
+    # blocks in order (via points renumber them): the corrected rows are the motion blocks
     bno = _table_np(new_blocks, "block_no", np.int64)
-    rows = np.searchsorted(bno, _table_np(corrected, "block_no", np.int64))
+    rows = np.searchsorted(_table_np(blocks, "block_no", np.int64), _table_np(corrected, "block_no", np.int64))
     got = np.stack([_table_np(new_blocks, c) for c in ("x1_mm", "y1_mm", "z1_mm")], 1)[rows]
     want = np.stack([_table_np(corrected, c) for c in ("x_new_mm", "y_new_mm", "z_new_mm")], 1)
     # axes the program never set before a block are held at their first value by the parser

@@ -25,7 +25,13 @@ NAME = "parse"
 VERSION = "1"
 INPUTS = ("program_file",)
 OUTPUTS = ("parse_status", "blocks")
-PARAMS = ()
+# via points (stages.nc_writer.via_blocks): long G1 lines cut at the split stage's pass length
+PARAMS = ("correct.via_points", "split.max_pass_mm")
+
+
+def used_params(params: dict) -> dict:
+    """Without via points parsing uses no workflow value (its cache key stays that of the file)."""
+    return params if params.get("correct", {}).get("via_points") else {}
 
 RAPID, LINEAR, ARC_CW, ARC_CCW, DWELL = 0, 1, 2, 3, 4
 INCH_MM = 25.4
@@ -513,6 +519,9 @@ def run(inputs: dict, params: dict) -> dict[str, pa.Table]:
             data = fh.read()
         blocks, summary = parse_program(data, path, program_id)
         status.update(summary)
+        if params.get("correct", {}).get("via_points"):
+            from stages.nc_writer import via_blocks
+            blocks = via_blocks(data, blocks, float(params["split"]["max_pass_mm"]))
     except InputError as e:
         blocks = _empty_blocks()
         status.update(status="failed", message=str(e), n_lines=_count_lines(path))

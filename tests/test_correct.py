@@ -16,7 +16,7 @@ import pytest
 
 from stages.correct import (REFINE_MAX_RATIO, apply_corrected, correct_iteratively, correct_once, gouge_limit,
                             vertex_moves)
-from stages.nc_writer import reverse_check, write_comp_table, write_ln_program, write_program
+from stages.nc_writer import reverse_check, via_blocks, write_comp_table, write_ln_program, write_program
 from stages.parse import ARC_RADIUS_TOL_MM, parse_program
 from stages.split import split_blocks
 
@@ -1157,3 +1157,70 @@ def test_normals_a_few_degrees_apart_do_not_slide_the_vertex_along_a_straight_pa
     assert np.allclose(t[[0, 2, 3]], 0.0) and np.linalg.norm(t[1]) == pytest.approx(1.0)
     free = vertex_moves(ea, na, yes, eb, nb, yes, along_path=np.zeros((1, 3)))[0]
     assert np.abs([free @ na[0] + ea[0], free @ nb[0] + eb[0]]).max() < 0.05 * abs(ea[0])
+
+
+# ------------------------------------------------------------------------------------ via points
+
+_VIA_PROGRAM = b"\n".join([
+    b"%", b"O0011", b"N2 G90 G21 G17", b"N4 T1 M6", b"N6 S1000 M3", b"N8 G0 X0. Y0. Z5.",
+    b"N10 G1 Z0. F100",
+    b"N12 X20.000 F300 (LONG PLAIN LINE)",      # 4 pieces of 5 mm
+    b"N14 Y12.000 M8",                          # long, but an M word: not cut
+    b"N16 X8.000 Y3.000",                       # 15 mm: 3 pieces
+    b"N18 G91 X-12.000",                        # long, incremental: not cut
+    b"N20 G90 G0 Z50.000", b"M30", b"%", b""])
+
+
+def test_via_points_cut_long_plain_lines_into_the_split_stage_passes():
+    blocks, _ = parse_program(_VIA_PROGRAM, "v", "p")
+    vb = via_blocks(_VIA_PROGRAM, blocks, 5.0)
+    lines = vb.column("line_no").to_numpy()
+    # the plain G1 lines are cut (line 8: 20 mm → 4, line 10: 15 mm → 3); M8 and G91 lines are not
+    assert [int((lines == k).sum()) for k in (8, 9, 10, 11)] == [4, 1, 3, 1]
+    assert np.array_equal(vb.column("block_no").to_numpy(), np.arange(1, vb.num_rows + 1))
+    # the passes are the same as without the cut
+    a, b = split_blocks(blocks, SPLIT), split_blocks(vb, SPLIT)
+    cols = ("x0_mm", "y0_mm", "z0_mm", "x1_mm", "y1_mm", "z1_mm", "motion", "line_no")
+    assert a.num_rows == b.num_rows
+    for c in cols:
+        assert np.allclose(a.column(c).to_numpy(), b.column(c).to_numpy(), atol=1e-12), c
+
+
+def test_via_points_are_written_as_inserted_lines_where_the_errors_differ_along_a_cut():
+    blocks, _ = parse_program(_VIA_PROGRAM, "v", "p")
+    vb = via_blocks(_VIA_PROGRAM, blocks, 5.0)
+    passes = split_blocks(vb, SPLIT)
+    cut = passes.column("motion").to_numpy() != 0
+    pid_line = passes.column("line_no").to_numpy()
+    # the four passes of the 20 mm line: errors 40, 30, 20, 10 µm along −y (material left at −y):
+    # each via point between passes i, i+1 of one normal moves by (e_i + e_{i+1}) / 2 along +y
+    e = np.where(pid_line == 8, 0.0, 0.0)
+    e[pid_line == 8] = [40.0, 30.0, 20.0, 10.0]
+    err = _errors(passes, e, np.tile([0, -1.0, 0], (passes.num_rows, 1))).filter(pa.array(cut & (pid_line == 8)))
+    c = correct_once(vb, passes, err, {"correct": {}})
+    out = write_program(_VIA_PROGRAM, vb, c)
+    got = out.split(b"\n")
+    i = got.index(b"N12 X20.000 Y0.010 F300 (LONG PLAIN LINE)")
+    # three lines inserted before it; the feed of the line moves onto the first
+    assert got[i - 3:i] == [b"G1 X5.000 Y0.035 Z0.000 F300", b"G1 X10.000 Y0.025 Z0.000", b"G1 X15.000 Y0.015 Z0.000"]
+    assert b"3 VIA LINES INSERTED" in got[2]
+    # every other line as before (the line before the cut gets the first pass's move: 40 µm)
+    src = _VIA_PROGRAM.split(b"\n")
+    rest = got[:2] + got[3:i - 3] + got[i:]
+    assert len(rest) == len(src)
+    diff = [(a, b) for a, b in zip(src, rest) if a != b]
+    assert diff == [(b"N10 G1 Z0. F100", b"N10 G1 Y0.040 Z0. F100"),
+                    (b"N12 X20.000 F300 (LONG PLAIN LINE)", b"N12 X20.000 Y0.010 F300 (LONG PLAIN LINE)")]
+    rep = reverse_check(out, vb, c)
+    assert rep["ok"], rep["message"]
+    assert rep["n_blocks"] == (blocks.num_rows + 3, blocks.num_rows + 3)
+    # the same errors everywhere along the cut: its pieces stay on the straight line, nothing inserted
+    e[pid_line == 8] = 25.0
+    err = _errors(passes, e, np.tile([0, -1.0, 0], (passes.num_rows, 1))).filter(pa.array(cut & (pid_line == 8)))
+    c = correct_once(vb, passes, err, {"correct": {}})
+    out = write_program(_VIA_PROGRAM, vb, c)
+    assert b"VIA" not in out and b"\nG1 X" not in out
+    assert reverse_check(out, vb, c)["ok"]
+    # no error: byte-identical
+    c = correct_once(vb, passes, err.slice(0, 0), {"correct": {}})
+    assert write_program(_VIA_PROGRAM, vb, c) == _VIA_PROGRAM

@@ -108,6 +108,29 @@ def test_changes_invalidate_exactly_what_depends_on_them(tmp_path):
     assert sorted(read_table(o, "programs").program_id) == ["p00", "p01", "p02", "p99"]
 
 
+def test_via_points_make_parsing_depend_on_the_split_length(tmp_path):
+    wf_path = make_project(tmp_path, n_programs=1)
+    rows = [f"N{10 + i} X{60 * (i % 2)}.000 Y{0.5 * (i // 2):.3f}" for i in range(20)]
+    (tmp_path / "nc" / "p00.nc").write_text("\n".join(
+        ["%", "O1", "G90 G17 G21", "T1 M6", "S12000 M3", "G0 X0. Y0. Z5.", "G1 Z0. F1000", *rows, "G0 Z50.", "M30", "%", ""]))
+    o = tmp_path / "out"
+    wf = dict(WF, correct={"via_points": True})
+    wf_path.write_text(yaml.safe_dump(wf))
+    assert run_cli("run", str(wf_path), "--workers", "1", "--until", "split", "-q")[0] == 0
+    n_via = len(read_table(o, "blocks"))
+    # with via points the blocks are cut at the split length: a new length parses again
+    wf["split"] = {"max_pass_mm": 2.0}
+    wf_path.write_text(yaml.safe_dump(wf))
+    assert run_cli("run", str(wf_path), "--workers", "1", "--until", "split", "-q")[0] == 0
+    assert stage(run_json(o), "parse")["computed"] == 1
+    assert len(read_table(o, "blocks")) > n_via
+    # switched off: the file's own blocks, one per motion line
+    wf["correct"] = {"via_points": False}
+    wf_path.write_text(yaml.safe_dump(wf))
+    assert run_cli("run", str(wf_path), "--workers", "1", "--until", "split", "-q")[0] == 0
+    assert len(read_table(o, "blocks")) < n_via
+
+
 def test_stage_version_bump_invalidates_that_stage_and_its_successors(tmp_path, monkeypatch):
     from pipeline.engine import Run
     wf_path = make_project(tmp_path, n_programs=1)
