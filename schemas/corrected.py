@@ -3,6 +3,8 @@ import pyarrow as pa
 # DESIGN §6 `corrected`: one row per NC vertex (the end point of a G0–G3 block), written by the stage
 # `correct` (seed 000 para 0084). x/y/z_mm: the ORIGINAL program's coordinates (program frame, mm,
 # absolute); x/y/z_new_mm: after all rounds so far. Arcs carry their refitted centre (null for lines).
+# With correct.via_points a long G1 line is several blocks (stages.nc_writer.via_blocks): its rows
+# share the line_no, and every row but the line's last is a via point the writer may insert.
 SCHEMA = pa.schema([
     pa.field('program_id', pa.string()),
     pa.field('block_no', pa.int32()),

@@ -85,8 +85,9 @@ def via_blocks(data: bytes, blocks: pa.Table, max_mm: float) -> pa.Table:
         bad = ~np.isin(letter, np.frombuffer(bytes(_VIA_LETTERS), np.uint8))
         # G words other than G1 / G01 (a G90, G41 … on the line would be repeated or lost)
         g = np.flatnonzero(letter == ord("G"))
-        gval = [raw[a:b].tobytes() for a, b in zip(sc["vstart"][g], sc["vend"][g])]
-        bad[g] = [v not in (b"1", b"01") for v in gval]
+        v0, vlen = sc["vstart"][g], sc["vend"][g] - sc["vstart"][g]
+        c0, c1 = raw[np.minimum(v0, raw.size - 1)], raw[np.minimum(v0 + 1, raw.size - 1)]
+        bad[g] = ~(((vlen == 1) & (c0 == ord("1"))) | ((vlen == 2) & (c0 == ord("0")) & (c1 == ord("1"))))
         bad_line = np.zeros(int(max(line.max(), sc["line"].max() if sc["line"].size else 0)) + 1, bool)
         bad_line[sc["line"][bad]] = True
         cut &= ~bad_line[line]
@@ -109,7 +110,7 @@ def via_blocks(data: bytes, blocks: pa.Table, max_mm: float) -> pa.Table:
     return out
 
 
-def _via_rows(blocks: pa.Table, corrected: pa.Table):
+def _via_rows(corrected: pa.Table):
     """Which ``corrected`` rows are via points (a piece of a cut line before its last) and which of
     them are written: those whose line's pieces leave the straight line between the new ends (on
     the 0.001 mm grid) — all the pieces of such a line, else none."""
@@ -152,7 +153,7 @@ def write_program(data: bytes, blocks: pa.Table, corrected: pa.Table, *, source_
     """
     if corrected.num_rows == 0:
         return data
-    via, via_w = _via_rows(blocks, corrected)
+    via, via_w = _via_rows(corrected)
     if via.any():
         corrected = corrected.filter(pa.array(~via | via_w))
         via = via_w[~via | via_w]
@@ -551,7 +552,7 @@ def reverse_check(text: bytes, blocks: pa.Table, corrected: pa.Table, path: str 
     pid = program_id or (blocks.column("program_id")[0].as_py() if blocks.num_rows else "p")
     new_blocks, _ = parse_program(text, path, pid)
     # the blocks the program should have: the source's, less the via points not written
-    via, via_w = _via_rows(blocks, corrected) if corrected.num_rows else (np.zeros(0, bool),) * 2
+    via, via_w = _via_rows(corrected) if corrected.num_rows else (np.zeros(0, bool),) * 2
     if via.any():
         drop = _table_np(corrected, "block_no", np.int64)[via & ~via_w]
         blocks = blocks.filter(pa.array(~np.isin(_table_np(blocks, "block_no", np.int64), drop)))

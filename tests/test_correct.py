@@ -1224,3 +1224,20 @@ def test_via_points_are_written_as_inserted_lines_where_the_errors_differ_along_
     # no error: byte-identical
     c = correct_once(vb, passes, err.slice(0, 0), {"correct": {}})
     assert write_program(_VIA_PROGRAM, vb, c) == _VIA_PROGRAM
+
+
+def test_via_lines_follow_the_program_style():
+    # CRLF, no spaces, G01: the inserted lines are written the same way
+    text = b"\r\n".join([b"%", b"O0012", b"G90G21G17", b"T1M6", b"S1000M3", b"G0X0.Y0.Z5.", b"G01Z0.F100",
+                         b"N12G01X15.000F300", b"G0Z50.", b"M30", b"%", b""])
+    blocks, _ = parse_program(text, "v", "p")
+    vb = via_blocks(text, blocks, 5.0)
+    passes = split_blocks(vb, SPLIT)
+    line = passes.column("line_no").to_numpy()
+    e = np.zeros(passes.num_rows)
+    e[line == 8] = [30.0, 10.0, 30.0]
+    err = _errors(passes, e, np.tile([0, -1.0, 0], (passes.num_rows, 1))).filter(pa.array(line == 8))
+    c = correct_once(vb, passes, err, {"correct": {}})
+    out = write_program(text, vb, c)
+    assert b"\r\nG01Y0.030Z0.F100\r\nG1X5.000Y0.020Z0.000F300\r\nG1X10.000Y0.020Z0.000\r\nN12G01X15.000Y0.030F300\r\n" in out
+    assert reverse_check(out, vb, c)["ok"]
