@@ -60,7 +60,7 @@ def via_blocks(data: bytes, blocks: pa.Table, max_mm: float) -> pa.Table:
     data : the program bytes ``blocks`` was parsed from
     blocks : its ``blocks`` table (one row per block, one block per line)
     max_mm : ``split.max_pass_mm``: a line of length L becomes ceil(L / max_mm) blocks, exactly the
-        pieces :func:`stages.split._split_long` makes, so the passes do not change
+        pieces :func:`stages.split.split_long` makes, so the passes do not change
 
     Returns
     -------
@@ -93,14 +93,8 @@ def via_blocks(data: bytes, blocks: pa.Table, max_mm: float) -> pa.Table:
         cut &= ~bad_line[line]
     if not cut.any():
         return blocks
-    reps = np.where(cut, k, 1)
-    idx = np.repeat(np.arange(n), reps)
-    first = np.concatenate(([0], np.cumsum(reps)[:-1]))
-    j = (np.arange(idx.size) - first[idx])[:, None]
-    kk = reps[idx][:, None]
-    d = p1[idx] - p0[idx]
-    q0 = p0[idx] + d * (j / kk)
-    q1 = np.where(j + 1 == kk, p1[idx], p0[idx] + d * ((j + 1) / kk))
+    from stages.split import split_long
+    idx, q0, q1 = split_long(np.arange(n), p0, p1, cut, max_mm)
     out = blocks.take(pa.array(idx))
     cols = dict(zip(("x0_mm", "y0_mm", "z0_mm", "x1_mm", "y1_mm", "z1_mm"), (*q0.T, *q1.T)))
     cols["block_no"] = np.arange(1, idx.size + 1, dtype=np.int32)

@@ -85,7 +85,7 @@ def arc_chords(start, end, centre, plane, ccw, tol):
     return owner, p0, p1
 
 
-def _split_long(owner, p0, p1, is_cut, max_len):
+def split_long(owner, p0, p1, is_cut, max_len):
     """Cut cutting segments longer than ``max_len`` into equal pieces."""
     length = np.linalg.norm(p1 - p0, axis=1)
     k = np.where(is_cut, np.maximum(1, np.ceil(length / max_len - 1e-9)), 1).astype(np.int64)
@@ -173,7 +173,7 @@ def split_blocks(blocks: pa.Table, params: dict) -> pa.Table:
 
     # 2. long cutting moves split; 3. short runs merged
     is_cut = motion[owner] != RAPID
-    owner, p0, p1 = _split_long(owner, p0, p1, is_cut, sp["max_pass_mm"])
+    owner, p0, p1 = split_long(owner, p0, p1, is_cut, sp["max_pass_mm"])
     feed = np.nan_to_num(b["feed_mm_min"].astype(float))
     seg_feed = np.where(motion[owner] == RAPID, machine["rapid_mm_min"], feed[owner])
     same_kind = np.ones(owner.size, bool)
