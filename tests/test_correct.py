@@ -14,8 +14,8 @@ import numpy as np
 import pyarrow as pa
 import pytest
 
-from stages.correct import (REFINE_MAX_RATIO, apply_corrected, correct_iteratively, correct_once, gouge_limit,
-                            vertex_moves)
+from stages.correct import (REFINE_MAX_RATIO, apply_corrected, contact_lines, correct_iteratively, correct_once,
+                            gouge_limit, vertex_moves)
 from stages.nc_writer import reverse_check, via_blocks, write_comp_table, write_ln_program, write_program
 from stages.parse import ARC_RADIUS_TOL_MM, parse_program
 from stages.split import split_blocks
@@ -1128,6 +1128,69 @@ def test_stage_limits_the_corner_vertex_by_the_wall_pass_generating_point():
                 - [4.9, 0.0, 0.0]) * 1000.0
         assert move == pytest.approx([expect, 0.0, 0.0], abs=0.01)
         assert out.column("gouge_limit_um")[row].as_py() == pytest.approx(400.0 if limit else 0.0, abs=0.01)
+
+
+def test_contact_lines_carry_the_generating_point_along_its_pass():
+    """A bull-nose tool (R 5, rc 2) touching at contact angle q and rotation φ: the contact point is
+    the tip plus ``ToolShape.point(q, φ)`` and the surface normal is minus the tool's outward normal
+    there, (−sin q cos φ, −sin q sin φ, cos q). With the prediction point 30 % along a 1 mm pass
+    the line runs from A + point to B + point, 0.2 mm apart at most (6 points); the generating
+    point itself comes first."""
+    from stages.geometry import ToolShape
+    bull = ToolShape("bull", 5.0, 2.0, 40.0)
+    rng = np.random.default_rng(4)
+    q, phi = rng.uniform(5, 85, 3), rng.uniform(0, 360, 3)
+    c = bull.point(q, phi)
+    qr, pr = np.radians(q), np.radians(phi)
+    n = np.stack([-np.sin(qr) * np.cos(pr), -np.sin(qr) * np.sin(pr), np.cos(qr)], 1)
+    a = rng.uniform(-10, 10, (3, 3))
+    direction = rng.normal(size=(3, 3))
+    b = a + direction / np.linalg.norm(direction, axis=1)[:, None]      # 1 mm passes
+    gen = a + 0.3 * (b - a) + c
+    pts, nrm, idx = contact_lines(gen, n, np.arange(3), a, b, bull, spacing_mm=0.2)
+    np.testing.assert_allclose(pts[:3], gen)
+    for k in range(3):
+        line = pts[3:][idx[3:] == k]
+        assert len(line) == 6
+        np.testing.assert_allclose(line[0], a[k] + c[k], atol=1e-9)
+        np.testing.assert_allclose(line[-1], b[k] + c[k], atol=1e-9)
+        np.testing.assert_allclose(np.diff(line, axis=0), np.tile((b[k] - a[k]) / 5, (5, 1)), atol=1e-9)
+        np.testing.assert_allclose(nrm[3:][idx[3:] == k], np.tile(n[k], (6, 1)))
+
+
+def test_stage_limits_the_corner_vertex_by_the_wall_line_beside_it():
+    """The corner of the test above, with the wall finished by a row along its foot instead: tips
+    at x 5.0 from y −8 to 8 (four 4 mm passes, their generating points on the wall x 10 at their
+    middles, y ±2 and ±6, z 5). No generating point is within reach of the vertex's tool (the
+    nearest 0.48 mm off, more than the 300 µm move limit), but the wall's foot passes 0.1 mm beside
+    it: along the wall passes' contact lines the vertex moves the 100 µm clearance."""
+    from stages import correct
+    text = b"\n".join([b"%", b"O0001", b"G90 G17 G21", b"T1 M6", b"S8000 M3", b"G0 X0. Y0. Z10.",
+                       b"G1 Z0. F500", b"X4.9", b"Y2.", b"G0 Z50.", b"X5. Y-8.", b"Z2.", b"G1 Z0. F500",
+                       b"Y8.", b"G0 Z50.", b"M30", b"%", b""])
+    blocks, _ = parse_program(text, "corner.nc", "p")
+    passes = split_blocks(blocks, SPLIT)
+    col = lambda c: passes.column(c).to_numpy()  # noqa: E731
+    floor = np.flatnonzero((col("x0_mm") == 0.0) & (col("x1_mm") == 4.9) & (col("z1_mm") == 0.0))[0]
+    wall = np.flatnonzero((col("x0_mm") == 5.0) & (col("y0_mm") != col("y1_mm")))
+    assert len(wall) == 4
+    normals = np.tile([0.0, 0.0, 1.0], (passes.num_rows, 1))
+    err = np.zeros(passes.num_rows)
+    normals[floor + 1], err[floor + 1] = [0.6, 0.0, 0.8], -300.0
+    mid_y = (col("y0_mm")[wall] + col("y1_mm")[wall]) / 2
+    generating = pa.table({"program_id": ["p"] * 4, "pass_id": passes.column("pass_id").take(wall),
+                           "gen_x_mm": np.full(4, 10.0), "gen_y_mm": mid_y, "gen_z_mm": np.full(4, 5.0),
+                           "nx": np.full(4, -1.0), "ny": np.zeros(4), "nz": np.zeros(4)})
+    errors = _errors(passes, err, normals).filter(pa.array(np.isin(np.arange(passes.num_rows), [floor, floor + 1])))
+    inputs = {"blocks": blocks, "passes": passes, "errors": errors, "generating": generating}
+    tool = {"type": "ball", "diameter_mm": 10.0, "stickout_mm": 40.0}
+    vertex = int(col("block_end")[floor])
+    out = correct.run(inputs, {"correct": {"max_move_um": 300.0}, "tool": tool})["corrected"]
+    row = int(np.flatnonzero(out.column("block_no").to_numpy() == vertex)[0])
+    move = (np.array([out.column(c)[row].as_py() for c in ("x_new_mm", "y_new_mm", "z_new_mm")])
+            - [4.9, 0.0, 0.0]) * 1000.0
+    assert move == pytest.approx([100.0, 0.0, 0.0], abs=0.01)
+    assert np.hypot(5.1, 2.0) - 5.0 > 0.3                      # the points alone allow the 300 µm
 
 
 def test_normals_a_few_degrees_apart_do_not_slide_the_vertex_along_a_straight_path():
