@@ -1130,6 +1130,28 @@ def test_stage_limits_the_corner_vertex_by_the_wall_pass_generating_point():
         assert out.column("gouge_limit_um")[row].as_py() == pytest.approx(400.0 if limit else 0.0, abs=0.01)
 
 
+def test_refinement_across_a_straight_path_does_not_slide_the_vertex_sideways():
+    """The sample's pocket x wall climbed in one line (window x 74–82, y 47–51, round 2): two
+    passes of the line with errors 303.2 and 126.3 µm and normals 1.6° apart, almost all of it
+    along the path (nz 0.049 against 0.022) and 0.1° across it (ny 0 against −0.002). Across the
+    path the normals are one normal, so the move is the para 0084 move: along −e·n (closed form
+    below), nothing sideways (the refinement solved first and projected afterwards slid the vertex
+    128 µm along the wall)."""
+    na = np.array([[-0.999, 0.000, 0.049]])
+    nb = np.array([[-1.0, -0.002, 0.022]])
+    na, nb = na / np.linalg.norm(na), nb / np.linalg.norm(nb)
+    t = np.array([[0.141, 0.0, 4.02]]) / np.hypot(0.141, 4.02)
+    ea, eb = 303.168, 126.295
+    ok = np.ones(1, bool)
+    m = vertex_moves(np.array([ea]), na, ok, np.array([eb]), nb, ok, along_path=t)[0]
+    d = -(ea * na[0] + eb * nb[0])
+    d /= np.linalg.norm(d)
+    ca, cb = d @ na[0], d @ nb[0]
+    para_0084 = -(ea * ca + eb * cb) / (ca ** 2 + cb ** 2) * d
+    assert abs(m[1]) < 1.0
+    np.testing.assert_allclose(m, para_0084, atol=1.0)
+
+
 def test_contact_lines_carry_the_generating_point_along_its_pass():
     """A bull-nose tool (R 5, rc 2) touching at contact angle q and rotation φ: the contact point is
     the tip plus ``ToolShape.point(q, φ)`` and the surface normal is minus the tool's outward normal
