@@ -39,13 +39,18 @@ m = −(e_i n_i + e_j n_j), which realises both errors exactly.
 - Moves are clipped at ``max_move_um`` (the total move over all iterations); clipped vertices are
   flagged in the ``clipped`` column.
 - Gouge limit (``correct.gouge_limit``, on by default; needs the ``generating`` table and the
-  tool): a vertex is not moved so far that the tool cuts past the generating point of another
-  surface it passes beside (:func:`gouge_limit`); ``gouge_limit_um`` lists what was taken off. On
+  tool): a vertex is not moved so far that the tool cuts past the contact line of another pass
+  beside it (its generating point carried along the pass, :func:`contact_lines`;
+  :func:`gouge_limit`); ``gouge_limit_um`` lists what was taken off. On
   the sample mould's pocket corner (x 78, y 36–39) four 0.2 mm passes descending into the corner
   (predicted −217…−437 µm, a buried ball deflected ~1 mm) share vertices with floor passes; the
   least-squares move that realises both is 500–670 µm along +x, and with the tool's side 0.07–0.13
   mm from the wall, the 300 µm it was clipped to cut the wall 40–110 µm below what the wall's own
-  passes left (on the virtual machine: wall passes +41 → −43 µm).
+  passes left (on the virtual machine: wall passes +41 → −43 µm). Checked against the wall
+  passes' generating points alone (2 mm up their 4 mm climbs) the limit missed the wall's foot
+  (+38 → −50 µm after one round, −342 µm after three); along their contact lines the sample's
+  window x 74–82, y 36–40 (`bench/closed_loop_pipeline_samples.py`, with via points) went from
+  45.5 % to 27.8 % after one round and from 42.9 % to 20.3 % after three, max 333 → 29 µm.
 - Arcs (G2/G3): the chord points of the arc are moved like vertices, then the arc is refitted by
   least squares: the centre lies on the perpendicular bisector of the moved end points (so the
   program stays consistent) at the position that best fits the moved chord points (algebraic
