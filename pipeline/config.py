@@ -133,6 +133,11 @@ class Correct(_Strict):
     # limit vertex moves so that the tool does not cut into the surface other passes generate
     # (a heavy corner pass moved sideways into the wall beside it; stages.correct.gouge_limit)
     gouge_limit: bool = True
+    # the gouge limit checks other passes' contact lines (the generating point carried along the
+    # pass, stages.correct.contact_lines), not only their generating points. Off by default: on the
+    # sample it guards the pocket wall's foot (window 42.9 → 20.3 %) but the whole program got
+    # worse (37.2 → 41.0 % after three rounds, with via points)
+    gouge_lines: bool = False
     ln_normals: bool = False                 # also write Heidenhain-style LN blocks with normals
     comp_table: bool = False                 # also write a contact-angle compensation table
     # undo the tool deflection as a vector (−δ; its tangential part shifts cusps), the rest of the

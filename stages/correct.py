@@ -50,7 +50,11 @@ m = −(e_i n_i + e_j n_j), which realises both errors exactly.
   passes' generating points alone (2 mm up their 4 mm climbs) the limit missed the wall's foot
   (+38 → −50 µm after one round, −342 µm after three); along their contact lines the sample's
   window x 74–82, y 36–40 (`bench/closed_loop_pipeline_samples.py`, with via points) went from
-  45.5 % to 27.8 % after one round and from 42.9 % to 20.3 % after three, max 333 → 29 µm.
+  45.5 % to 27.8 % after one round and from 42.9 % to 20.3 % after three, max 333 → 29 µm. Off
+  by default (``correct.gouge_lines``): on the whole sample program the wall's foot improved
+  (67.9 → 32.1 µm RMS after three rounds) but the rest got worse, 37.2 → 41.0 % after three
+  rounds (the slope beside that foot, whose overcut the blocked move no longer relieves, and the
+  convex row y 61.2, where the lines of neighbouring passes on the profile block moves).
 - Arcs (G2/G3): the chord points of the arc are moved like vertices, then the arc is refitted by
   least squares: the centre lies on the perpendicular bisector of the moved end points (so the
   program stays consistent) at the position that best fits the moved chord points (algebraic
@@ -86,18 +90,18 @@ import pyarrow as pa
 from stages import InputError
 
 NAME = "correct"
-VERSION = "10"
+VERSION = "11"
 INPUTS = ("blocks", "passes", "errors", "generating")
 OUTPUTS = ("corrected",)
 # only the clip limit and the relaxation of rounds 2… change the table; tol_um and max_iter steer
 # the engine's rounds and the LN / compensation-table options the writer, so changing them re-uses
 # every cached round
 PARAMS = ("correct.max_move_um", "correct.relax", "correct.accelerate", "correct.deflection_vector",
-          "correct.gouge_limit", "tool")
+          "correct.gouge_limit", "correct.gouge_lines", "tool")
 
 DEFAULTS = {"max_move_um": 50.0, "tol_um": 0.1, "max_iter": 5, "relax": 1.0, "ln_normals": False,
             "comp_table": False, "deflection_vector": False, "accelerate": False,
-            "gouge_limit": True}
+            "gouge_limit": True, "gouge_lines": False}
 _PLANE_AXES = {17: (0, 1, 2), 18: (2, 0, 1), 19: (1, 2, 0)}  # as stages.parse: (first, second, normal)
 _EPS_UM = 1e-9
 # normals of the two passes at a vertex closer than this are one normal for the least-squares
@@ -626,8 +630,9 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
         total_um[stale] = (last[stale] - orig[stale]) * 1000.0
     gouge_um = np.zeros(nb)
     if n_pass and generating is not None and tool_shape is not None:
-        gen_xyz, gen_n, gen_pass = contact_lines(*_generating_points(generating, passes), pstart, pend,
-                                                 tool_shape)
+        gen_xyz, gen_n, gen_pass = _generating_points(generating, passes)
+        if p["gouge_lines"]:
+            gen_xyz, gen_n, gen_pass = contact_lines(gen_xyz, gen_n, gen_pass, pstart, pend, tool_shape)
         total_um, gouge_um = gouge_limit(total_um, orig - frame, own, own_normals, gen_xyz, gen_n,
                                          gen_pass, tool_shape)
     size = np.linalg.norm(total_um, axis=1)

@@ -790,7 +790,8 @@ def test_stage_run_matches_schema():
     assert set(table.column("iteration").to_pylist()) == {1}
     assert correct.NAME == "correct" and correct.INPUTS == ("blocks", "passes", "errors", "generating")
     assert correct.OUTPUTS == ("corrected",) and correct.PARAMS == ("correct.max_move_um", "correct.relax", "correct.accelerate",
-                                                                   "correct.deflection_vector", "correct.gouge_limit", "tool")
+                                                                   "correct.deflection_vector", "correct.gouge_limit",
+                                                                   "correct.gouge_lines", "tool")
 
 
 def test_incremental_program_random_moves_reverse_check():
@@ -1185,7 +1186,8 @@ def test_stage_limits_the_corner_vertex_by_the_wall_line_beside_it():
     at x 5.0 from y −8 to 8 (four 4 mm passes, their generating points on the wall x 10 at their
     middles, y ±2 and ±6, z 5). No generating point is within reach of the vertex's tool (the
     nearest 0.48 mm off, more than the 300 µm move limit), but the wall's foot passes 0.1 mm beside
-    it: along the wall passes' contact lines the vertex moves the 100 µm clearance."""
+    it: along the wall passes' contact lines (``correct.gouge_lines``) the vertex moves the 100 µm
+    clearance, with the points alone the 300 µm move limit."""
     from stages import correct
     text = b"\n".join([b"%", b"O0001", b"G90 G17 G21", b"T1 M6", b"S8000 M3", b"G0 X0. Y0. Z10.",
                        b"G1 Z0. F500", b"X4.9", b"Y2.", b"G0 Z50.", b"X5. Y-8.", b"Z2.", b"G1 Z0. F500",
@@ -1207,12 +1209,12 @@ def test_stage_limits_the_corner_vertex_by_the_wall_line_beside_it():
     inputs = {"blocks": blocks, "passes": passes, "errors": errors, "generating": generating}
     tool = {"type": "ball", "diameter_mm": 10.0, "stickout_mm": 40.0}
     vertex = int(col("block_end")[floor])
-    out = correct.run(inputs, {"correct": {"max_move_um": 300.0}, "tool": tool})["corrected"]
-    row = int(np.flatnonzero(out.column("block_no").to_numpy() == vertex)[0])
-    move = (np.array([out.column(c)[row].as_py() for c in ("x_new_mm", "y_new_mm", "z_new_mm")])
-            - [4.9, 0.0, 0.0]) * 1000.0
-    assert move == pytest.approx([100.0, 0.0, 0.0], abs=0.01)
-    assert np.hypot(5.1, 2.0) - 5.0 > 0.3                      # the points alone allow the 300 µm
+    for lines, expect in ((True, 100.0), (False, 300.0)):        # the points alone: the move limit
+        out = correct.run(inputs, {"correct": {"max_move_um": 300.0, "gouge_lines": lines}, "tool": tool})
+        row = int(np.flatnonzero(out["corrected"].column("block_no").to_numpy() == vertex)[0])
+        move = (np.array([out["corrected"].column(c)[row].as_py() for c in ("x_new_mm", "y_new_mm", "z_new_mm")])
+                - [4.9, 0.0, 0.0]) * 1000.0
+        assert move == pytest.approx([expect, 0.0, 0.0], abs=0.01)
 
 
 def test_normals_a_few_degrees_apart_do_not_slide_the_vertex_along_a_straight_path():
