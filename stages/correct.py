@@ -39,9 +39,10 @@ m = −(e_i n_i + e_j n_j), which realises both errors exactly.
 - Moves are clipped at ``max_move_um`` (the total move over all iterations); clipped vertices are
   flagged in the ``clipped`` column.
 - Gouge limit (``correct.gouge_limit``, on by default; needs the ``generating`` table and the
-  tool): a vertex is not moved so far that the tool cuts past the contact line of another pass
-  beside it (its generating point carried along the pass, :func:`contact_lines`;
-  :func:`gouge_limit`); ``gouge_limit_um`` lists what was taken off. On
+  tool): a vertex is not moved so far that the tool cuts past the generating point of another
+  surface it passes beside (with ``correct.gouge_lines``, past that pass's contact line: its
+  generating point carried along the pass, :func:`contact_lines`; :func:`gouge_limit`);
+  ``gouge_limit_um`` lists what was taken off. On
   the sample mould's pocket corner (x 78, y 36–39) four 0.2 mm passes descending into the corner
   (predicted −217…−437 µm, a buried ball deflected ~1 mm) share vertices with floor passes; the
   least-squares move that realises both is 500–670 µm along +x, and with the tool's side 0.07–0.13
@@ -230,7 +231,7 @@ def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True, along_path=N
         # solved across the path: a move m ⊥ t changes e_k by m·n_k', n_k' = n_k − (n_k·t)t, so the
         # modes and their filter are those of the projected normals (projecting the solved move
         # afterwards kept what it asked along t's complement: on the pocket's x wall, normals
-        # 1.5° apart mostly along the path and 0.1° across it slid a vertex 118 µm along the wall)
+        # 1.5° apart mostly along the path and 0.1° across it slid a vertex ~120 µm along the wall)
         na = na - np.einsum("ij,ij->i", na, along_path)[:, None] * along_path
         nb = nb - np.einsum("ij,ij->i", nb, along_path)[:, None] * along_path
     g = np.empty((m.shape[0], 2, 2))
