@@ -1,93 +1,117 @@
-"""Measured-error correction of the sample finishing program on the gap issue's virtual machine
-(issue 5 closed loop; a bench, not a CI test: ~30–60 s per window).
+"""Correction of the sample finishing program from its MEASURED error on the gap issue's virtual
+machine: the loop a shop closes with an on-machine probe or a CMM (issue 5; a bench, not a CI test:
+one virtual-machine run per round, 13 min for the whole program on this machine).
 
-For a window of data_samples/nc/mould_finish_t1.nc: the passes near it are machined on
-``stages/virtual_machine.py`` (discrete flutes, time-domain dynamics, the semi-finished stock) and
-probed on its own plan (``grid_plan``, 0.1 mm); the error is against the original program cut on a
-rigid machine. Each probe point's error goes to the pass nearest its ball centre (per-pass mean),
-``stages.correct.correct_iteratively`` corrects (4 rounds, tol 0.2 µm, like tests/test_correct.py),
-the written program is machined again.
+It takes a run directory of ``bench/closed_loop_pipeline_samples.py`` (a window, or ``--whole``):
+its program (``nc/band.nc``), workflow (``wf1.yaml``), the original program's tables
+(``out/tables``: blocks, passes, generating; with ``correct.via_points`` the blocks are cut at the
+pass ends, so the written programs get via points like the pipeline's) and ``points.parquet`` (the
+probe plan, each point's pass by the machine's own association, and the original program's
+machined error). Round k:
 
-    python3 bench/closed_loop_vm_samples.py [X0 X1 Y0 Y1 ...]   (default: three windows)
+1. each pass gets the mean machined error of its probe points in the program of round k − 1
+   (a residual against the original surface; the normal is their mean normal);
+2. ``stages.correct.correct_once`` moves the vertices against it; residuals accumulate on the
+   moves so far (``relax=None``), with the workflow's gouge limit and the bench's clip;
+3. ``stages.nc_writer.write_program`` writes the program, and the virtual machine machines and probes
+   it (cached under ``<run>/../vm_cache`` by program text, like the pipeline bench).
+
+No prediction is involved: the rounds show what the correction itself reaches when its input is the
+machine's error per pass, against which the pipeline's predicted rounds can be read.
+
+    python3 bench/closed_loop_vm_samples.py RUN_DIR [--rounds 3] [--max-move 300]
 """
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
-import pyarrow as pa
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
 
 
-def window(win, K=2.0):
-    import tests.test_correct as T
-    from stages.correct import correct_iteratively
-    from stages.gap_geometry import nearest_pass
+def errors_from_points(pass_id, err_um, normals, min_points: int = 1):
+    """``errors`` table (pass_id, err_um, nx, ny, nz) of the per-pass mean of probe-point errors and
+    normals; passes with fewer than ``min_points`` points are left out (their vertices follow their
+    neighbours)."""
+    import pyarrow as pa
+    pid = np.asarray(pass_id, np.int64)
+    ids, inv, cnt = np.unique(pid, return_inverse=True, return_counts=True)
+    mean = lambda v: np.bincount(inv, v, ids.size) / cnt  # noqa: E731
+    n = np.stack([mean(normals[:, i]) for i in range(3)], 1)
+    n /= np.maximum(np.linalg.norm(n, axis=1), 1e-12)[:, None]
+    keep = cnt >= min_points
+    return pa.table({"pass_id": ids[keep], "err_um": mean(np.asarray(err_um, float))[keep],
+                     "nx": n[keep, 0], "ny": n[keep, 1], "nz": n[keep, 2]})
+
+
+def main():
+    import pandas as pd
+    import pyarrow.parquet as pq
+    import yaml
+
+    import closed_loop_pipeline_samples as bench
+    from stages.correct import apply_corrected, correct_once
+    from stages.geometry import tool_from_params
     from stages.nc_writer import reverse_check, write_program
-    from stages.parse import parse_program
-    from stages.split import split_blocks
-    from stages.virtual_machine import VirtualMachine, grid_plan
-    x0, x1, y0, y1 = win
-    src = open("data_samples/nc/mould_finish_t1.nc", "rb").read()
-    tool = {"type": "ball", "diameter_mm": 10.0, "flutes": 2, "helix_deg": 30.0, "runout_um": 0.0, "control_point": "tip"}
-    material = {"ktc": 2000, "krc": 700, "kac": 300, "kte": 20, "kre": 15, "kae": 5}
-    split = T.SPLIT
-    _b0, _ = parse_program(src, "vm", "p")
-    _p0 = split_blocks(_b0, split)
-    def _sub0(passes):
-        g = lambda c: passes.column(c).to_numpy()
-        lo = np.minimum(g("x0_mm"), g("x1_mm")); hi = np.maximum(g("x0_mm"), g("x1_mm"))
-        ylo = np.minimum(g("y0_mm"), g("y1_mm")); yhi = np.maximum(g("y0_mm"), g("y1_mm"))
-        return passes.filter(pa.array((hi > x0 - 7) & (lo < x1 + 7) & (yhi > y0 - 7) & (ylo < y1 + 7)))
-    _vm0 = VirtualMachine(_sub0(_p0), tool, material, {"frf": {a: [{"fn_hz": 900, "zeta": 0.03, "k_n_per_um": 1e9}] for a in "xy"}, "table": None}, "data_samples/models/semi.stl")
-    pts, nrm = grid_plan(_vm0, 0.1)
-    ok = (pts[:, 0] >= x0) & (pts[:, 0] < x1) & (pts[:, 1] >= y0) & (pts[:, 1] < y1)
-    pts, nrm = pts[ok], nrm[ok]
-    print("probe points", len(pts))
-    def sub(passes):
-        g = lambda c: passes.column(c).to_numpy()
-        lo = np.minimum(g("x0_mm"), g("x1_mm")); hi = np.maximum(g("x0_mm"), g("x1_mm"))
-        ylo = np.minimum(g("y0_mm"), g("y1_mm")); yhi = np.maximum(g("y0_mm"), g("y1_mm"))
-        m = (hi > x0 - 7) & (lo < x1 + 7) & (yhi > y0 - 7) & (ylo < y1 + 7)
-        return passes.filter(pa.array(m))
-    def probe(blocks, stiff):
-        machine = {"frf": {a: [{"fn_hz": 900, "zeta": 0.03, "k_n_per_um": stiff}] for a in "xy"}, "table": None}
-        passes = split_blocks(blocks, split)
-        s = sub(passes)
-        vm = VirtualMachine(s, tool, material, machine, "data_samples/models/semi.stl")
-        return vm.probe(pts, nrm), passes, vm
-    t0 = time.time()
-    b0, _ = parse_program(src, "vm", "p")
-    ideal, _, _ = probe(b0, 1e9)
-    print("ideal probe %.1f s" % (time.time() - t0), "ideal mean %.2f" % ideal.mean())
-    rms = []
-    def predict(blocks):
-        e, passes, vm = probe(blocks, K)
-        e = e - ideal
-        rms.append(float(np.sqrt(np.mean(e ** 2))))
-        row, _, _ = nearest_pass(vm.path, pts + 5.0 * nrm)
-        pid = vm.path.pass_id[row]
-        n = passes.num_rows
-        cnt = np.bincount(pid, minlength=n)
-        em = np.bincount(pid, e, n) / np.maximum(cnt, 1)
-        nn = np.stack([np.bincount(pid, nrm[:, i], n) for i in range(3)], 1)
-        have = cnt >= 3
-        nn[have] /= np.linalg.norm(nn[have], axis=1)[:, None]
-        return passes, T._errors(passes, em, nn).filter(pa.array(have))
-    cor = correct_iteratively(b0, predict, {"correct": {"max_move_um": 100.0, "tol_um": 0.2, "max_iter": 4}})
-    out = write_program(src, b0, cor)
-    assert reverse_check(out, b0, cor)["ok"]
-    e, _, _ = probe(parse_program(out, "c", "p")[0], K)
-    final = float(np.sqrt(np.mean((e - ideal) ** 2)))
-    print(f"window x{x0:g}-{x1:g} y{y0:g}-{y1:g}, {len(pts)} probe points:", "RMS error per round", ["%.2f" % r for r in rms], "written %.2f = %.1f %%  (%.0f s)" % (final, 100 * final / rms[0], time.time() - t0))
+
+    ap = argparse.ArgumentParser()
+    ap.add_argument("run", type=Path, help="a run directory of bench/closed_loop_pipeline_samples.py")
+    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--max-move", type=float, default=None,
+                    help="clip of the total vertex move, µm; default: the run's workflow")
+    args = ap.parse_args()
+    run = args.run.resolve()
+    wf = yaml.safe_load((run / "wf1.yaml").read_text())
+    table = lambda name: pq.read_table(run / "out" / "tables" / name)  # noqa: E731
+    blocks, passes, generating = table("blocks"), table("passes").sort_by("pass_id"), table("generating")
+    src = (run / "nc" / "band.nc").read_bytes()
+    pts = pd.read_parquet(run / "points.parquet")
+    xs, ys = pts.x_mm.to_numpy(), pts.y_mm.to_numpy()
+    # the window the pipeline bench probed (its directory name), for the machine's cache key
+    m = re.fullmatch(r"x([\d.]+)-([\d.]+)_y([\d.]+)-([\d.]+)", run.name)
+    window = tuple(float(v) for v in m.groups()) if m else (-1e9, 1e9, -1e9, 1e9)
+    max_move = args.max_move if args.max_move is not None else wf["correct"]["max_move_um"]
+    params = {"correct": {**wf["correct"], "max_move_um": float(max_move)}, "tool": wf["tool"]}
+    shape = tool_from_params(wf["tool"]) if params["correct"].get("gouge_limit", True) else None
+    normals = pts[["nx", "ny", "nz"]].to_numpy()
+    err = pts.err_original_um.to_numpy()
+    base = float(np.sqrt(np.mean(err ** 2)))
+    print(f"{run.name}: {len(pts)} probe points ({xs.min():.0f}–{xs.max():.0f}, {ys.min():.0f}–{ys.max():.0f} mm), "
+          f"error RMS {base:.3f} um before")
+    corrected, current, report = None, blocks, {"run": str(run), "before_rms_um": base, "rounds": []}
+    for k in range(1, args.rounds + 1):
+        errors = errors_from_points(pts.pass_id.to_numpy(), err, normals)
+        corrected = correct_once(current, passes, errors, params, previous=corrected, relax=None,
+                                 generating=generating, tool_shape=shape)
+        current = apply_corrected(blocks, corrected)
+        text = write_program(src, blocks, corrected)
+        if not reverse_check(text, blocks, corrected)["ok"]:
+            raise SystemExit(f"round {k}: the written program does not parse back to the corrected table")
+        name = f"{k} measured round{'s' if k > 1 else ''}"
+        (run / f"measured_{k}.nc").write_bytes(text)
+        res = bench.vm_errors(window, {"original": src, name: text}, wf, cache=run.parent / "vm_cache",
+                              dump=run / f"points_measured_{k}.parquet")
+        err = pq.read_table(run / f"points_measured_{k}.parquet").column(f"err_{name.replace(' ', '_')}_um").to_numpy()
+        v = res[name]
+        move = corrected.column("move_um").to_numpy()
+        print(f"  round {k}: {errors.num_rows} passes with a measured error, max move {move.max():.1f} um "
+              f"({int(corrected.column('clipped').to_numpy().sum())} clipped); machined: error RMS "
+              f"{v['rms_um']:.3f} um ({100 * v['rms_um'] / base:.1f} % of before), P95 {v['p95_abs_um']:.2f} um, "
+              f"max {v['max_abs_um']:.1f} um; by q: "
+              + ", ".join(f"{b} {v[b]['rms_um']:.2f} um" for _, _, b in bench.Q_BANDS if v[b]["rms_um"] is not None),
+              flush=True)
+        report["rounds"].append({"round": k, **v})
+    (run / "summary_measured.json").write_text(json.dumps(report, indent=1, default=str))
 
 
 if __name__ == "__main__":
-    import os
-    os.chdir(Path(__file__).resolve().parents[1])
-    args = [float(a) for a in sys.argv[1:]]
-    wins = [tuple(args[i:i + 4]) for i in range(0, len(args), 4)] or [
-        (14.0, 24.0, 34.0, 44.0), (45.0, 57.0, 40.0, 50.0), (75.0, 87.0, 36.0, 44.0)]
-    for w in wins:
-        window(w)
+    os.chdir(ROOT)
+    main()
