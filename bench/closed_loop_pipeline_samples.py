@@ -19,8 +19,9 @@ walls and the boss, where the error is):
     python3 bench/closed_loop_pipeline_samples.py [--out DIR] [--keep] [--prune DEG] [--max-move UM]
         [--correct KEY=VALUE ...] [X0 X1 Y0 Y1 ...]
     python3 bench/closed_loop_pipeline_samples.py --whole [--out DIR] [--prune DEG] [--workers 2] [--spacing MM]
-        [--rounds 1] (one round of the pipeline 21 min on 2 workers at prune 0; the virtual machine
-        21–70 min per program, 43,326 probe points at 0.1 mm)
+        [--rounds 1] (one round of the pipeline 16–21 min on 2 workers at prune 0; the virtual machine
+        13–70 min per program on one core, 43,326 probe points at 0.1 mm; the programs not in its
+        cache are machined side by side, one process a core)
 
 ``--rounds`` lists the round counts to run (default 1 and 3). The virtual machine's probes are kept
 under ``<out>/vm_cache`` keyed by a hash of the program text, the machine's own source, the
@@ -134,50 +135,63 @@ def _cached(cache: Path, key: str, compute):
     return out
 
 
-def vm_errors(window, programs: dict, wf: dict, spacing_mm: float = 0.1, cache: Path | None = None,
-              dump: Path | None = None, predicted=None) -> dict:
+def _machine(text: bytes, rigid: bool, wf: dict, window):
+    """The virtual machine loaded with the passes of ``text`` within ``MARGIN_MM`` of the window.
+    The real machine cuts with the real tool (its measured profile); the reference is the nominal
+    tool on a rigid machine: the error is deflection plus tool shape, both of which the prediction
+    corrects."""
     import pyarrow as pa
-    import pyarrow.parquet as pq
     from stages.parse import parse_program
     from stages.split import split_blocks
-    from stages.virtual_machine import VirtualMachine, grid_plan
+    from stages.virtual_machine import VirtualMachine
     x0, x1, y0, y1 = window
-    # the real machine cuts with the real tool (its measured profile); the reference is the nominal
-    # tool on a rigid machine: the error is deflection plus tool shape, both of which the
-    # prediction corrects
     nominal = {k: v for k, v in wf["tool"].items() if k != "profile"}
     split = {"split": wf["split"], "machine": wf["machine"], "tool": nominal}
+    b, _ = parse_program(text, "vm.nc", "band")
+    passes = split_blocks(b, split)
+    g = lambda c: passes.column(c).to_numpy()  # noqa: E731
+    lo, hi = np.minimum(g("x0_mm"), g("x1_mm")), np.maximum(g("x0_mm"), g("x1_mm"))
+    ylo, yhi = np.minimum(g("y0_mm"), g("y1_mm")), np.maximum(g("y0_mm"), g("y1_mm"))
+    near = (hi > x0 - MARGIN_MM) & (lo < x1 + MARGIN_MM) & (yhi > y0 - MARGIN_MM) & (ylo < y1 + MARGIN_MM)
+    frf = ({a: [{"fn_hz": 900.0, "zeta": 0.03, "k_n_per_um": 1e9}] for a in "xy"} if rigid
+           else {"table": wf["machine"]["frf"]["table"]})
+    return VirtualMachine(passes.filter(pa.array(near)), nominal if rigid else wf["tool"], wf["material"],
+                          {"frf": frf}, wf["stock"])
 
-    def near(passes):
-        g = lambda c: passes.column(c).to_numpy()  # noqa: E731
-        lo, hi = np.minimum(g("x0_mm"), g("x1_mm")), np.maximum(g("x0_mm"), g("x1_mm"))
-        ylo, yhi = np.minimum(g("y0_mm"), g("y1_mm")), np.maximum(g("y0_mm"), g("y1_mm"))
-        m = (hi > x0 - MARGIN_MM) & (lo < x1 + MARGIN_MM) & (yhi > y0 - MARGIN_MM) & (ylo < y1 + MARGIN_MM)
-        return passes.filter(pa.array(m))
 
-    def machine(text, rigid):
-        frf = ({a: [{"fn_hz": 900.0, "zeta": 0.03, "k_n_per_um": 1e9}] for a in "xy"} if rigid
-               else {"table": wf["machine"]["frf"]["table"]})
-        b, _ = parse_program(text, "vm.nc", "band")
-        return VirtualMachine(near(split_blocks(b, split)), nominal if rigid else wf["tool"], wf["material"],
-                              {"frf": frf}, wf["stock"])
+def _machined_error(text: bytes, wf: dict, window, pts, nrm, ideal) -> dict:
+    """Error (µm) of ``text`` machined on the virtual machine at the probe points."""
+    return {"err": _machine(text, False, wf, window).probe(pts, nrm) - ideal}
 
+
+def vm_errors(window, programs: dict, wf: dict, spacing_mm: float = 0.1, cache: Path | None = None,
+              dump: Path | None = None, predicted=None) -> dict:
+    """Machine ``programs`` (name → text, "original" first) on the virtual machine and probe them;
+    the programs not in ``cache`` are machined side by side, one process a core."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+    from stages.virtual_machine import grid_plan
+    x0, x1, y0, y1 = window
     inputs = [wf["tool"], wf["material"], wf["machine"], wf["split"], list(window), spacing_mm]
     for f in (wf["stock"], wf["tool"].get("profile"), wf["machine"]["frf"].get("table")):
         if f:
             inputs.append(Path(f).read_bytes())
 
     def reference():
-        vm = machine(programs["original"], True)
+        vm = _machine(programs["original"], True, wf, window)
         pts, nrm = grid_plan(vm, spacing_mm)
         ok = (pts[:, 0] >= x0) & (pts[:, 0] < x1) & (pts[:, 1] >= y0) & (pts[:, 1] < y1)
         pts, nrm = pts[ok], nrm[ok]
         rows = vm._near_passes(pts + vm.R * nrm, 1)[0][:, 0] if len(pts) else np.zeros(0, np.int64)
         return {"pts": pts, "nrm": nrm, "ideal": vm.probe(pts, nrm), "pass_id": vm.path.pass_id[rows]}
 
+    machined = {}
+
     def probed(text):
         def run():
-            return {"err": machine(text, False).probe(pts, nrm) - ideal}
+            return machined[text] if text in machined else _machined_error(text, wf, window, pts, nrm, ideal)
         return (_cached(cache, _vm_key(text, *inputs), run) if cache else run())["err"]
 
     ref = _cached(cache, _vm_key(b"rigid", programs["original"], *inputs), reference) if cache else reference()
@@ -192,6 +206,12 @@ def vm_errors(window, programs: dict, wf: dict, spacing_mm: float = 0.1, cache: 
         pid, perr = predicted
         lut = dict(zip(pid.tolist(), perr.tolist()))
         cols["predicted_um"] = np.array([lut.get(int(i), np.nan) for i in ref["pass_id"]])
+    todo = list(dict.fromkeys(t for t in programs.values()
+                              if cache is None or not (cache / f"{_vm_key(t, *inputs)}.npz").is_file()))
+    if len(todo) > 1:                           # the machine runs on one core: one program a core
+        with ProcessPoolExecutor(min(len(todo), os.cpu_count() or 1)) as pool:
+            futures = [pool.submit(_machined_error, t, wf, window, pts, nrm, ideal) for t in todo]
+            machined.update(zip(todo, (f.result() for f in futures)))
     for name, text in programs.items():
         e = probed(text)
         cols[f"err_{name.replace(' ', '_')}_um"] = e
