@@ -138,6 +138,11 @@ class Correct(_Strict):
     # sample it guards the pocket wall's foot (window 42.9 → 20.3 %) but the whole program got
     # worse (37.2 → 41.0 % after three rounds, with via points)
     gouge_lines: bool = False
+    # the least-squares refinement on a straight path solved with the normals projected across the
+    # path, not its solved move projected afterwards (which slid a wall vertex 128 µm sideways in
+    # a window). Off by default: the whole sample program did worse after three rounds (41.9
+    # against 37.2 %, the convex row y 61.2 folded again)
+    refine_across_path: bool = False
     ln_normals: bool = False                 # also write Heidenhain-style LN blocks with normals
     comp_table: bool = False                 # also write a contact-angle compensation table
     # undo the tool deflection as a vector (−δ; its tangential part shifts cusps), the rest of the

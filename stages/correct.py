@@ -91,18 +91,18 @@ import pyarrow as pa
 from stages import InputError
 
 NAME = "correct"
-VERSION = "11"
+VERSION = "12"
 INPUTS = ("blocks", "passes", "errors", "generating")
 OUTPUTS = ("corrected",)
 # only the clip limit and the relaxation of rounds 2… change the table; tol_um and max_iter steer
 # the engine's rounds and the LN / compensation-table options the writer, so changing them re-uses
 # every cached round
 PARAMS = ("correct.max_move_um", "correct.relax", "correct.accelerate", "correct.deflection_vector",
-          "correct.gouge_limit", "correct.gouge_lines", "tool")
+          "correct.gouge_limit", "correct.gouge_lines", "correct.refine_across_path", "tool")
 
 DEFAULTS = {"max_move_um": 50.0, "tol_um": 0.1, "max_iter": 5, "relax": 1.0, "ln_normals": False,
             "comp_table": False, "deflection_vector": False, "accelerate": False,
-            "gouge_limit": True, "gouge_lines": False}
+            "gouge_limit": True, "gouge_lines": False, "refine_across_path": False}
 _PLANE_AXES = {17: (0, 1, 2), 18: (2, 0, 1), 19: (1, 2, 0)}  # as stages.parse: (first, second, normal)
 _EPS_UM = 1e-9
 # normals of the two passes at a vertex closer than this are one normal for the least-squares
@@ -162,7 +162,7 @@ def _xyz(table: pa.Table, names) -> np.ndarray:
     return np.stack([_col(table, c) for c in names], axis=1)
 
 
-def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True, along_path=None):
+def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True, along_path=None, across_path=False):
     """Move of vertices shared by passes a and b (para 0084, refined by least squares), vectorised.
 
     The para 0084 move points along E'a + E'b with the least-squares magnitude. That realises both
@@ -183,10 +183,11 @@ def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True, along_path=N
     :data:`REFINE_MAX_RATIO` times the larger error (a vertex is not moved far along the direction
     both passes barely see). Where the path runs on nearly straight through the vertex
     (``along_path``: its unit direction there, zero where it turns by :data:`PATH_TURN_DEG` or
-    more), the refinement keeps out of that direction: it is solved across the path, with the
-    normals projected onto the plane normal to it (so normals that differ mostly along the path
-    are one normal there, and the filter sees what is left). Normals that differ only along the
-    path are a profile's own curvature, and realising their different errors by sliding the vertex
+    more), the refinement keeps out of that direction: with ``across_path`` it is solved across the
+    path, with the normals projected onto the plane normal to it (so normals that differ mostly
+    along the path are one normal there, and the filter sees what is left); without, the solved
+    move's part along the path is taken off afterwards. Normals that differ only along the path
+    are a profile's own curvature, and realising their different errors by sliding the vertex
     along its passes changes their lengths, not their surfaces (see :data:`PATH_TURN_DEG`).
 
     Parameters
@@ -197,6 +198,8 @@ def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True, along_path=N
     refine : bool, add the least-squares refinement (False: the para 0084 move alone)
     along_path : (v, 3) float or None, unit path direction the refinement must not move along
         (zero rows: no restriction)
+    across_path : bool, solve the refinement with the normals projected across ``along_path``
+        (``correct.refine_across_path``) instead of projecting the solved move
 
     Returns
     -------
@@ -227,7 +230,7 @@ def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True, along_path=N
     na, nb = n_a * wa[:, None], n_b * wb[:, None]
     r = np.stack([-wa * err_a - np.einsum("ij,ij->i", m, na),
                   -wb * err_b - np.einsum("ij,ij->i", m, nb)], 1)
-    if along_path is not None:
+    if along_path is not None and across_path:
         # solved across the path: a move m ⊥ t changes e_k by m·n_k', n_k' = n_k − (n_k·t)t, so the
         # modes and their filter are those of the projected normals (projecting the solved move
         # afterwards kept what it asked along t's complement: on the pocket's x wall, normals
@@ -244,6 +247,8 @@ def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True, along_path=N
     coef = np.einsum("vki,vk->vi", vec, r) * gain                           # per mode
     ab = np.einsum("vki,vi->vk", vec, coef)                                 # (α, β)
     extra = ab[:, :1] * na + ab[:, 1:] * nb
+    if along_path is not None and not across_path:
+        extra -= np.einsum("ij,ij->i", extra, along_path)[:, None] * along_path
     cap = REFINE_MAX_RATIO * np.maximum(np.abs(wa * err_a), np.abs(wb * err_b))
     size = np.linalg.norm(extra, axis=1)
     extra *= np.minimum(1.0, cap / np.maximum(size, 1e-30))[:, None]
@@ -568,7 +573,8 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
         d_mean = (db * has_b[:, None] + da * has_a[:, None]) / np.maximum(has_b.astype(float) + has_a, 1.0)[:, None]
         node_move = vertex_moves(eb - np.einsum("ij,ij->i", d_mean, nb_), nb_, has_b,
                                  ea - np.einsum("ij,ij->i", d_mean, na_), na_, has_a,
-                                 along_path=_straight_through(pstart, pend)) - d_mean
+                                 along_path=_straight_through(pstart, pend),
+                                 across_path=bool(p["refine_across_path"])) - d_mean
         node_xyz = np.vstack([pstart, pend[-1:]])
         node_normal = nb_ * has_b[:, None] + na_ * has_a[:, None]
         # vertex → node: the last pass starting at or before the block

@@ -791,7 +791,8 @@ def test_stage_run_matches_schema():
     assert correct.NAME == "correct" and correct.INPUTS == ("blocks", "passes", "errors", "generating")
     assert correct.OUTPUTS == ("corrected",) and correct.PARAMS == ("correct.max_move_um", "correct.relax", "correct.accelerate",
                                                                    "correct.deflection_vector", "correct.gouge_limit",
-                                                                   "correct.gouge_lines", "tool")
+                                                                   "correct.gouge_lines", "correct.refine_across_path",
+                                                                   "tool")
 
 
 def test_incremental_program_random_moves_reverse_check():
@@ -1136,21 +1137,24 @@ def test_refinement_across_a_straight_path_does_not_slide_the_vertex_sideways():
     passes of the line with errors 303.2 and 126.3 µm and normals 1.6° apart, almost all of it
     along the path (nz 0.049 against 0.022) and 0.1° across it (ny 0 against −0.002). Across the
     path the normals are one normal, so the move is the para 0084 move: along −e·n (closed form
-    below), nothing sideways (the refinement solved first and projected afterwards slid the vertex
-    128 µm along the wall)."""
+    below), nothing sideways, with ``correct.refine_across_path`` (off by default: the whole sample
+    program did worse after three rounds); the refinement solved first and projected afterwards
+    (the default) slides the vertex 128 µm along the wall."""
     na = np.array([[-0.999, 0.000, 0.049]])
     nb = np.array([[-1.0, -0.002, 0.022]])
     na, nb = na / np.linalg.norm(na), nb / np.linalg.norm(nb)
     t = np.array([[0.141, 0.0, 4.02]]) / np.hypot(0.141, 4.02)
     ea, eb = 303.168, 126.295
     ok = np.ones(1, bool)
-    m = vertex_moves(np.array([ea]), na, ok, np.array([eb]), nb, ok, along_path=t)[0]
+    m = vertex_moves(np.array([ea]), na, ok, np.array([eb]), nb, ok, along_path=t, across_path=True)[0]
     d = -(ea * na[0] + eb * nb[0])
     d /= np.linalg.norm(d)
     ca, cb = d @ na[0], d @ nb[0]
     para_0084 = -(ea * ca + eb * cb) / (ca ** 2 + cb ** 2) * d
     assert abs(m[1]) < 1.0
     np.testing.assert_allclose(m, para_0084, atol=1.0)
+    projected = vertex_moves(np.array([ea]), na, ok, np.array([eb]), nb, ok, along_path=t, across_path=False)[0]
+    assert projected[1] < -100.0
 
 
 def test_contact_lines_carry_the_generating_point_along_its_pass():
