@@ -17,7 +17,7 @@ walls and the boss, where the error is):
    rigid machine (cusps and feed marks, which no path correction removes, are not counted).
 
     python3 bench/closed_loop_pipeline_samples.py [--out DIR] [--keep] [--prune DEG] [--max-move UM]
-        [--correct KEY=VALUE ...] [X0 X1 Y0 Y1 ...]
+        [--correct KEY=VALUE ...] [--set SECTION.KEY=VALUE ...] [X0 X1 Y0 Y1 ...]
     python3 bench/closed_loop_pipeline_samples.py --whole [--out DIR] [--prune DEG] [--workers 2] [--spacing MM]
         [--rounds 1] (one round of the pipeline 16–21 min on 2 workers at prune 0; the virtual machine
         13–70 min per program on one core, 43,326 probe points at 0.1 mm; the programs not in its
@@ -84,7 +84,7 @@ def window_program(src: bytes, x0: float, x1: float, y0: float, y1: float) -> by
     return "\n".join(out).encode()
 
 
-def workflow(root: Path, max_iter: int, prune_deg=None, max_move_um=None, correct_opts=()) -> Path:
+def workflow(root: Path, max_iter: int, prune_deg=None, max_move_um=None, correct_opts=(), other_opts=()) -> Path:
     import yaml
     wf = yaml.safe_load((ROOT / "workflows/mould.yaml").read_text())
     for k in ("stock", "nominal"):
@@ -100,6 +100,12 @@ def workflow(root: Path, max_iter: int, prune_deg=None, max_move_um=None, correc
     for kv in correct_opts:                      # e.g. deflection_vector=true, relax=0.5
         k, v = kv.split("=", 1)
         wf["correct"][k] = yaml.safe_load(v)
+    for kv in other_opts:                        # e.g. split.end_piece_mm=0.5
+        k, v = kv.split("=", 1)
+        section, _, key = k.partition(".")
+        if not key:
+            raise SystemExit(f"--set {kv}: expected SECTION.KEY=VALUE")
+        wf.setdefault(section, {})[key] = yaml.safe_load(v)
     if prune_deg is not None:
         wf["prune"] = {**wf.get("prune", {}), "min_contact_deg": float(prune_deg)}
     p = root / f"wf{max_iter}.yaml"
@@ -238,6 +244,8 @@ def main():
     ap.add_argument("--whole", action="store_true", help="the whole program, probed over the whole part")
     ap.add_argument("--correct", action="append", default=[], metavar="KEY=VALUE",
                     help="a workflow `correct` option for both runs (repeatable), e.g. deflection_vector=true")
+    ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE", dest="other",
+                    help="any other workflow value for both runs (repeatable), e.g. split.end_piece_mm=0.5")
     ap.add_argument("--workers", type=int, default=1, help="Dask workers of the pipeline runs")
     ap.add_argument("--spacing", type=float, default=0.1, help="probe spacing along the passes, mm")
     ap.add_argument("--rounds", default="1,3", help="round counts of the corrected programs, comma-separated")
@@ -258,7 +266,7 @@ def main():
         written, wall = {"original": band}, {}
         for mi in sorted(int(r) for r in args.rounds.split(",")):
             t0 = time.perf_counter()
-            r = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", str(workflow(root, mi, args.prune, args.max_move, args.correct)),
+            r = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", str(workflow(root, mi, args.prune, args.max_move, args.correct, args.other)),
                                 "--workers", str(args.workers), "-q"], cwd=root, capture_output=True, text=True)
             wall[mi] = round(time.perf_counter() - t0, 1)
             if r.returncode != 0:

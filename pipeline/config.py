@@ -110,6 +110,9 @@ class Split(_Strict):
 
     chord_tol_mm: float = Field(0.001, gt=0, le=1.0)  # arcs → chords, and merges, within this deviation
     max_pass_mm: float = Field(5.0, gt=0)             # longer cutting moves are split
+    # a split move's first and last piece this long (0: equal pieces only); with correct.via_points
+    # the vertex a long line shares with a pocket corner gets a via point this far along it
+    end_piece_mm: float = Field(0.0, ge=0)
     merge_max_mm: float = Field(0.5, ge=0)            # short moves merged into passes up to this long
 
 
@@ -143,6 +146,9 @@ class Correct(_Strict):
     # a window). Off by default: the whole sample program did worse after three rounds (41.9
     # against 37.2 %, the convex row y 61.2 folded again)
     refine_across_path: bool = False
+    # a vertex whose passes' normals are > 30° apart (a pocket corner, a wall's foot) moves only
+    # out of the fan of surface its tool generates there (stages.correct.corner_limit)
+    hold_corners: bool = False
     ln_normals: bool = False                 # also write Heidenhain-style LN blocks with normals
     comp_table: bool = False                 # also write a contact-angle compensation table
     # undo the tool deflection as a vector (−δ; its tangential part shifts cusps), the rest of the

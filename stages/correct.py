@@ -98,11 +98,13 @@ OUTPUTS = ("corrected",)
 # the engine's rounds and the LN / compensation-table options the writer, so changing them re-uses
 # every cached round
 PARAMS = ("correct.max_move_um", "correct.relax", "correct.accelerate", "correct.deflection_vector",
-          "correct.gouge_limit", "correct.gouge_lines", "correct.refine_across_path", "tool")
+          "correct.gouge_limit", "correct.gouge_lines", "correct.refine_across_path",
+          "correct.hold_corners", "tool")
 
 DEFAULTS = {"max_move_um": 50.0, "tol_um": 0.1, "max_iter": 5, "relax": 1.0, "ln_normals": False,
             "comp_table": False, "deflection_vector": False, "accelerate": False,
-            "gouge_limit": True, "gouge_lines": False, "refine_across_path": False}
+            "gouge_limit": True, "gouge_lines": False, "refine_across_path": False,
+            "hold_corners": False}
 _PLANE_AXES = {17: (0, 1, 2), 18: (2, 0, 1), 19: (1, 2, 0)}  # as stages.parse: (first, second, normal)
 _EPS_UM = 1e-9
 # normals of the two passes at a vertex closer than this are one normal for the least-squares
@@ -130,6 +132,11 @@ MIN_RELAX = 1.0 / 16
 # the pass-to-pass jitter of the prediction, which would otherwise set the slope)
 MAX_ACCEL = 4.0
 ACCEL_MIN_UM = 5.0
+# a vertex whose two passes' normals are further apart than this is a corner of the surface (a
+# pocket's corner between two walls, a wall's foot): the tool standing there generates the fan of
+# normals between them, which no pass predicts, and with correct.hold_corners it only moves out of
+# that fan (corner_limit)
+CORNER_DEG = 30.0
 # gouge limit (see gouge_limit): generating points of other passes whose normal lies within this
 # angle of a vertex's own pass normals are the same surface (the neighbouring rows of a floor or a
 # slope, corrected by their own moves) and do not limit the vertex
@@ -253,6 +260,54 @@ def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True, along_path=N
     size = np.linalg.norm(extra, axis=1)
     extra *= np.minimum(1.0, cap / np.maximum(size, 1e-30))[:, None]
     return m + extra
+
+
+def corner_limit(total_um, own_normals):
+    """Keep the moves of corner vertices out of the fan of surface their tool generates.
+
+    Where the normals n_a, n_b of a vertex's two passes are more than :data:`CORNER_DEG` apart, the
+    tool standing at the vertex finishes the fan of normals between them (a pocket corner rounded
+    by the ball, a wall's foot), a surface no pass predicts. A move m changes the fan's surface by
+    m·n for every n in it (first order), so the fan is not cut deeper only if m·n_a ≥ 0 and
+    m·n_b ≥ 0 (every n of the fan is a positive combination of the two). On the sample mould's
+    pocket corner (x 78, y 48–51) the walls' passes are predicted +88 and +203 µm, the fan between
+    them was machined −57…−97 µm, and the move that realises both walls at the corner vertex,
+    (+88, +203) µm, cut the fan to −250…−320 µm. The move is projected onto that cone (the
+    nearest move within it); the walls' own moves are carried by the vertices of the passes that
+    leave the corner (with ``split.end_piece_mm`` and via points, a short piece away).
+
+    Parameters
+    ----------
+    total_um : (v, 3) float, vertex moves from the original program, µm
+    own_normals : (v, 2, 3) float, unit normals of the vertex's two passes (zeros: none)
+
+    Returns
+    -------
+    ((v, 3) limited moves in µm, (v,) bool: the vertex is a corner)
+    """
+    out = np.array(total_um, dtype=float, copy=True)
+    na, nb = own_normals[:, 0], own_normals[:, 1]
+    both = (np.abs(na).sum(axis=1) > 0) & (np.abs(nb).sum(axis=1) > 0)
+    corner = both & (np.einsum("ij,ij->i", na, nb) < np.cos(np.radians(CORNER_DEG)))
+    if not corner.any():
+        return out, corner
+    m, a, b = out[corner], na[corner], nb[corner]
+    sa, sb = np.einsum("ij,ij->i", m, a), np.einsum("ij,ij->i", m, b)
+    ab = np.einsum("ij,ij->i", a, b)
+    # the nearest point of the cone {m·a ≥ 0, m·b ≥ 0}: m itself, m on one face, or m with its part
+    # in the plane of a and b taken off (the edge)
+    on_a = m - np.minimum(sa, 0.0)[:, None] * a
+    on_b = m - np.minimum(sb, 0.0)[:, None] * b
+    det = np.maximum(1.0 - ab ** 2, 1e-12)
+    alpha, beta = (sa - ab * sb) / det, (sb - ab * sa) / det
+    edge = m - alpha[:, None] * a - beta[:, None] * b
+    tol = -1e-9
+    cands = np.stack([m, on_a, on_b, edge], 1)
+    feasible = ((np.einsum("vkj,vj->vk", cands, a) >= tol) & (np.einsum("vkj,vj->vk", cands, b) >= tol))
+    feasible[:, 3] = True
+    dist = np.where(feasible, np.linalg.norm(cands - m[:, None], axis=2), np.inf)
+    out[corner] = cands[np.arange(m.shape[0]), dist.argmin(axis=1)]
+    return out, corner
 
 
 def gouge_limit(total_um, tips, own, own_normals, gen_xyz, gen_normals, gen_pass, shape, sweeps=3):
@@ -636,12 +691,17 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
         stale = np.linalg.norm(vnormal, axis=1) <= 1e-12
         total_um[stale] = (last[stale] - orig[stale]) * 1000.0
     gouge_um = np.zeros(nb)
+    if n_pass and p["hold_corners"]:
+        held, _ = corner_limit(total_um, own_normals)
+        gouge_um += np.linalg.norm(held - total_um, axis=1)
+        total_um = held
     if n_pass and generating is not None and tool_shape is not None:
         gen_xyz, gen_n, gen_pass = _generating_points(generating, passes)
         if p["gouge_lines"]:
             gen_xyz, gen_n, gen_pass = contact_lines(gen_xyz, gen_n, gen_pass, pstart, pend, tool_shape)
-        total_um, gouge_um = gouge_limit(total_um, orig - frame, own, own_normals, gen_xyz, gen_n,
-                                         gen_pass, tool_shape)
+        total_um, taken = gouge_limit(total_um, orig - frame, own, own_normals, gen_xyz, gen_n,
+                                      gen_pass, tool_shape)
+        gouge_um += taken
     size = np.linalg.norm(total_um, axis=1)
     clipped = size > max_move * (1 + 1e-12)
     total_um[clipped] *= (max_move / size[clipped])[:, None]

@@ -52,7 +52,7 @@ def _table_np(table: pa.Table, name: str, dtype=float):
 _VIA_LETTERS = frozenset(b"NGXYZF")
 
 
-def via_blocks(data: bytes, blocks: pa.Table, max_mm: float) -> pa.Table:
+def via_blocks(data: bytes, blocks: pa.Table, max_mm: float, end_mm: float = 0.0) -> pa.Table:
     """``blocks`` with every long plain G1 line cut into the split stage's equal pieces.
 
     Parameters
@@ -61,6 +61,7 @@ def via_blocks(data: bytes, blocks: pa.Table, max_mm: float) -> pa.Table:
     blocks : its ``blocks`` table (one row per block, one block per line)
     max_mm : ``split.max_pass_mm``: a line of length L becomes ceil(L / max_mm) blocks, exactly the
         pieces :func:`stages.split.split_long` makes, so the passes do not change
+    end_mm : ``split.end_piece_mm``: the length of the first and last piece (0: equal pieces)
 
     Returns
     -------
@@ -94,7 +95,7 @@ def via_blocks(data: bytes, blocks: pa.Table, max_mm: float) -> pa.Table:
     if not cut.any():
         return blocks
     from stages.split import split_long
-    idx, q0, q1 = split_long(np.arange(n), p0, p1, cut, max_mm)
+    idx, q0, q1, _ = split_long(np.arange(n), p0, p1, cut, max_mm, end_mm)
     out = blocks.take(pa.array(idx))
     cols = dict(zip(("x0_mm", "y0_mm", "z0_mm", "x1_mm", "y1_mm", "z1_mm"), (*q0.T, *q1.T)))
     cols["block_no"] = np.arange(1, idx.size + 1, dtype=np.int32)

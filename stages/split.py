@@ -5,7 +5,8 @@ little change in direction or short length may be merged into one pass, long mov
 Here:
 
 - arcs (G2/G3, helical included) become chords whose sagitta stays within ``split.chord_tol_mm``;
-- cutting moves longer than ``split.max_pass_mm`` are cut into equal pieces;
+- cutting moves longer than ``split.max_pass_mm`` are cut into equal pieces (with
+  ``split.end_piece_mm`` > 0, after a piece that long at each end);
 - runs of short consecutive cutting moves are merged into passes no longer than
   ``split.merge_max_mm``, but only where every merged vertex stays within ``chord_tol_mm`` of the
   merged pass, so merging never moves the path by more than the chord tolerance;
@@ -85,18 +86,38 @@ def arc_chords(start, end, centre, plane, ccw, tol):
     return owner, p0, p1
 
 
-def split_long(owner, p0, p1, is_cut, max_len):
-    """Cut cutting segments longer than ``max_len`` into equal pieces."""
+def split_long(owner, p0, p1, is_cut, max_len, end_len=0.0):
+    """Cut cutting segments longer than ``max_len`` into equal pieces.
+
+    With ``end_len`` > 0 such a segment first gets a piece of ``end_len`` at each end and its middle
+    is cut into equal pieces (``split.end_piece_mm``): a vertex where a long line meets another
+    surface (a pocket corner) then has a via point ``end_len`` away that carries the line's own
+    correction (stages.correct: such a corner vertex is not moved into the corner, see
+    ``CORNER_DEG`` there).
+
+    Returns
+    -------
+    (owner, q0, q1, piece): the segments' owners and end points, and whether a segment is a piece
+    of a cut one.
+    """
     length = np.linalg.norm(p1 - p0, axis=1)
-    k = np.where(is_cut, np.maximum(1, np.ceil(length / max_len - 1e-9)), 1).astype(np.int64)
+    long_ = is_cut & (length > max_len * (1 + 1e-9))
+    ends = long_ & (end_len > 0) & (length > 2 * end_len * (1 + 1e-9))
+    middle = np.where(ends, length - 2 * end_len, length)
+    k_mid = np.where(long_, np.maximum(1, np.ceil(middle / max_len - 1e-9)), 1).astype(np.int64)
+    k = k_mid + 2 * ends
     idx = np.repeat(np.arange(owner.size), k)
     first = np.concatenate(([0], np.cumsum(k)[:-1]))
-    j = (np.arange(idx.size) - first[idx])[:, None]
-    kk = k[idx][:, None]
-    d = p1[idx] - p0[idx]
-    q0 = p0[idx] + d * (j / kk)
-    q1 = np.where(j + 1 == kk, p1[idx], p0[idx] + d * ((j + 1) / kk))
-    return owner[idx], q0, q1
+    j = np.arange(idx.size) - first[idx]
+    # distance of every cut from the segment's start: [0, e, e + m/k_mid, …, L − e, L] with end pieces
+    def at(jj):
+        e = np.where(ends[idx], end_len, 0.0)
+        jm = np.clip(jj - ends[idx], 0, k_mid[idx])
+        return np.where(jj >= k[idx], length[idx], e * (jj > 0) + middle[idx] * jm / k_mid[idx])
+    d = (p1 - p0)[idx] / np.where(length > 0, length, 1.0)[idx, None]
+    q0 = p0[idx] + d * at(j)[:, None]
+    q1 = np.where((j + 1 == k[idx])[:, None], p1[idx], p0[idx] + d * at(j + 1)[:, None])
+    return owner[idx], q0, q1, k[idx] > 1
 
 
 def _merge_short(owner, p0, p1, mergeable, merge_max, tol):
@@ -173,16 +194,17 @@ def split_blocks(blocks: pa.Table, params: dict) -> pa.Table:
 
     # 2. long cutting moves split; 3. short runs merged
     is_cut = motion[owner] != RAPID
-    owner, p0, p1 = split_long(owner, p0, p1, is_cut, sp["max_pass_mm"])
+    owner, p0, p1, piece = split_long(owner, p0, p1, is_cut, sp["max_pass_mm"], sp.get("end_piece_mm", 0.0))
     feed = np.nan_to_num(b["feed_mm_min"].astype(float))
     seg_feed = np.where(motion[owner] == RAPID, machine["rapid_mm_min"], feed[owner])
     same_kind = np.ones(owner.size, bool)
     same_kind[1:] = (motion[owner][1:] == motion[owner][:-1]) | (
         (motion[owner][1:] != RAPID) & (motion[owner][:-1] != RAPID))
     same_kind[1:] &= seg_feed[1:] == seg_feed[:-1]
-    mergeable = (motion[owner] != RAPID) & same_kind
+    # the pieces of a cut line stay passes of their own (an end piece is short on purpose)
+    mergeable = (motion[owner] != RAPID) & same_kind & ~piece
     if owner.size:
-        mergeable[0] = motion[owner[0]] != RAPID
+        mergeable[0] = (motion[owner[0]] != RAPID) & ~piece[0]
     first, last = _merge_short(owner, p0, p1, mergeable, sp["merge_max_mm"], sp["chord_tol_mm"])
 
     q0, q1 = p0[first], p1[last]

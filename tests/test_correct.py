@@ -14,8 +14,8 @@ import numpy as np
 import pyarrow as pa
 import pytest
 
-from stages.correct import (REFINE_MAX_RATIO, apply_corrected, contact_lines, correct_iteratively, correct_once,
-                            gouge_limit, vertex_moves)
+from stages.correct import (REFINE_MAX_RATIO, apply_corrected, contact_lines, corner_limit, correct_iteratively,
+                            correct_once, gouge_limit, vertex_moves)
 from stages.nc_writer import reverse_check, via_blocks, write_comp_table, write_ln_program, write_program
 from stages.parse import ARC_RADIUS_TOL_MM, parse_program
 from stages.split import split_blocks
@@ -792,7 +792,7 @@ def test_stage_run_matches_schema():
     assert correct.OUTPUTS == ("corrected",) and correct.PARAMS == ("correct.max_move_um", "correct.relax", "correct.accelerate",
                                                                    "correct.deflection_vector", "correct.gouge_limit",
                                                                    "correct.gouge_lines", "correct.refine_across_path",
-                                                                   "tool")
+                                                                   "correct.hold_corners", "tool")
 
 
 def test_incremental_program_random_moves_reverse_check():
@@ -1332,3 +1332,104 @@ def test_via_lines_follow_the_program_style():
     out = write_program(text, vb, c)
     assert b"\r\nG01Y0.030Z0.F100\r\nG1X5.000Y0.020Z0.000F300\r\nG1X10.000Y0.020Z0.000\r\nN12G01X15.000Y0.030F300\r\n" in out
     assert reverse_check(out, vb, c)["ok"]
+
+
+# ------------------------------------------------------------------------------------ corners
+
+def test_end_pieces_cut_long_lines_the_same_in_via_blocks_and_passes():
+    """``split.end_piece_mm``: a long line's first and last piece have that length, the middle is
+    cut into equal pieces (20 mm → 0.5 + 4 × 4.75 + 0.5; 15 mm → 0.5 + 3 × 4.667 + 0.5); the via
+    blocks cut the plain lines at the same points, so the passes do not change."""
+    split = {**SPLIT, "split": {**SPLIT["split"], "end_piece_mm": 0.5}}
+    blocks, _ = parse_program(_VIA_PROGRAM, "v", "p")
+    passes = split_blocks(blocks, split)
+    line = passes.column("line_no").to_numpy()
+    length = np.linalg.norm(_xyz_of(passes, 1) - _xyz_of(passes, 0), axis=1)
+    np.testing.assert_allclose(length[line == 8], [0.5, 4.75, 4.75, 4.75, 4.75, 0.5], atol=1e-12)
+    np.testing.assert_allclose(length[line == 10], [0.5, 14 / 3, 14 / 3, 14 / 3, 0.5], atol=1e-12)
+    # the M8 line is cut by the split stage alone, the same way (12 mm: 0.5 + 3 × 3.667 + 0.5)
+    np.testing.assert_allclose(length[line == 9], [0.5, 11 / 3, 11 / 3, 11 / 3, 0.5], atol=1e-12)
+    vb = via_blocks(_VIA_PROGRAM, blocks, 5.0, 0.5)
+    lines = vb.column("line_no").to_numpy()
+    assert [int((lines == k).sum()) for k in (8, 9, 10, 11)] == [6, 1, 5, 1]
+    again = split_blocks(vb, split)
+    assert again.num_rows == passes.num_rows
+    for c in ("x0_mm", "y0_mm", "z0_mm", "x1_mm", "y1_mm", "z1_mm", "motion", "line_no"):
+        assert np.allclose(passes.column(c).to_numpy(), again.column(c).to_numpy(), atol=1e-12), c
+    # an end piece is not merged with the short moves beside it
+    short = parse_program(b"G90 G21 G17\nS8000 M3\nG0 X0 Y0 Z0\nG1 X-0.2 F100\nX10\nX10.2\nM30\n", "s", "p")[0]
+    sp = split_blocks(short, split)
+    np.testing.assert_allclose(np.linalg.norm(_xyz_of(sp, 1) - _xyz_of(sp, 0), axis=1),
+                               [0.2, 0.5, 4.6, 4.6, 0.5, 0.2], atol=1e-12)
+
+
+def _xyz_of(passes, end):
+    return np.stack([passes.column(f"{a}{end}_mm").to_numpy() for a in "xyz"], 1)
+
+
+def test_corner_limit_is_the_nearest_move_that_does_not_cut_into_the_fan():
+    """Closed forms at a pocket corner (normals −x and −y: material beyond x and y): a move into
+    both walls is taken off entirely but for its part along the corner's axis, a move out of one
+    wall and into the other keeps the part out of the first, a move out of both stays; a vertex
+    whose normals are closer than 30° is no corner. Random corners against a brute-force
+    constrained least squares (scipy SLSQP): the nearest move m with m·n_a ≥ 0 and m·n_b ≥ 0."""
+    from scipy.optimize import minimize
+    na, nb = np.array([-1.0, 0, 0]), np.array([0, -1.0, 0])
+    moves = np.array([[88.0, 203.0, 7.0], [-50.0, 100.0, 0.0], [-30.0, -20.0, 5.0], [40.0, 40.0, 0.0]])
+    own = np.array([[na, nb], [na, nb], [na, nb], [na, na * np.cos(0.4) + [0, -np.sin(0.4), 0]]])
+    out, corner = corner_limit(moves, own)
+    assert corner.tolist() == [True, True, True, False]
+    np.testing.assert_allclose(out, [[0, 0, 7.0], [-50.0, 0, 0], [-30.0, -20.0, 5.0], [40.0, 40.0, 0]], atol=1e-9)
+    rng = np.random.default_rng(7)
+    for _ in range(40):
+        a, b = rng.normal(size=(2, 3))
+        a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+        if a @ b > np.cos(np.radians(35.0)):
+            continue
+        m = rng.normal(0, 100, 3)
+        got, is_corner = corner_limit(m[None], np.array([[a, b]]))
+        ref = minimize(lambda x: np.sum((x - m) ** 2), np.zeros(3), method="SLSQP",
+                       constraints=[{"type": "ineq", "fun": lambda x, n=n: x @ n} for n in (a, b)],
+                       options={"ftol": 1e-12, "maxiter": 200}).x
+        assert is_corner[0]
+        np.testing.assert_allclose(got[0], ref, atol=1e-3)
+
+
+def test_pocket_corner_vertex_holds_and_the_via_points_beside_it_carry_the_walls():
+    """A pocket corner as on the sample mould (x 78, y 48): a line along +x finishes a wall with
+    its normal +y (+200 µm left), the next along +y a wall with its normal −x (+88 µm left). The
+    ball at the corner vertex finishes the fan of normals between them. Without
+    ``hold_corners`` the vertex realises both walls, (+88, −200) µm, which cuts the fan up to
+    218 µm deeper (where its normal is along the move); with it the vertex stays (no fan normal is cut deeper:
+    m·n ≥ 0 over the fan, sampled) and the via points 0.5 mm along each line (``end_piece_mm``)
+    take the walls' own moves, −e·n."""
+    text = b"\n".join([b"%", b"O0001", b"G90 G17 G21", b"T1 M6", b"S8000 M3", b"G0 X0. Y0. Z10.",
+                       b"G1 Z0. F500", b"X20.", b"Y20.", b"G0 Z50.", b"M30", b"%", b""])
+    split = {**SPLIT, "split": {**SPLIT["split"], "end_piece_mm": 0.5}}
+    blocks, _ = parse_program(text, "corner.nc", "p")
+    vb = via_blocks(text, blocks, 5.0, 0.5)
+    passes = split_blocks(vb, split)
+    p0, p1 = _xyz_of(passes, 0), _xyz_of(passes, 1)
+    along_x = (p1[:, 0] > p0[:, 0]) & (p0[:, 2] == 0) & (p1[:, 2] == 0)
+    along_y = p1[:, 1] > p0[:, 1]
+    normals = np.where(along_x[:, None], [0, 1.0, 0], np.where(along_y[:, None], [-1.0, 0, 0], [0, 0, 1.0]))
+    err = np.where(along_x, 200.0, np.where(along_y, 88.0, 0.0))
+    errors = _errors(passes, err, normals).filter(pa.array(along_x | along_y))
+
+    def moved(hold):
+        c = correct_once(vb, passes, errors, {"correct": {"max_move_um": 300.0, "hold_corners": hold}})
+        xyz = np.stack([c.column(k).to_numpy() for k in ("x_mm", "y_mm", "z_mm")], 1)
+        new = np.stack([c.column(k).to_numpy() for k in ("x_new_mm", "y_new_mm", "z_new_mm")], 1)
+        at = {tuple(np.round(p, 6)): (n - p) * 1000.0 for p, n in zip(xyz, new)}
+        return at[(20.0, 0.0, 0.0)], at[(19.5, 0.0, 0.0)], at[(20.0, 0.5, 0.0)]
+
+    corner, via_x, via_y = moved(False)
+    np.testing.assert_allclose(corner, [88.0, -200.0, 0], atol=1e-6)
+    t = np.linspace(0.0, np.pi / 2, 91)
+    fan = np.stack([-np.cos(t), np.sin(t), np.zeros_like(t)], 1)       # from −x to +y
+    assert (fan @ corner).min() == pytest.approx(-np.hypot(200.0, 88.0), rel=1e-3)   # the fan's normal along it
+    corner, via_x, via_y = moved(True)
+    assert (fan @ corner).min() >= -1e-6
+    np.testing.assert_allclose(corner, 0.0, atol=1e-6)
+    np.testing.assert_allclose(via_x, [0, -200.0, 0], atol=1e-6)
+    np.testing.assert_allclose(via_y, [88.0, 0, 0], atol=1e-6)
