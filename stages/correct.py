@@ -137,6 +137,8 @@ ACCEL_MIN_UM = 5.0
 # normals between them, which no pass predicts, and with correct.hold_corners it only moves out of
 # that fan (corner_limit)
 CORNER_DEG = 30.0
+# largest angle between two normals of a corner's fan guarded by the gouge limit (corner_fans)
+CORNER_FAN_STEP_DEG = 10.0
 # gouge limit (see gouge_limit): generating points of other passes whose normal lies within this
 # angle of a vertex's own pass normals are the same surface (the neighbouring rows of a floor or a
 # slope, corrected by their own moves) and do not limit the vertex
@@ -308,6 +310,37 @@ def corner_limit(total_um, own_normals):
     dist = np.where(feasible, np.linalg.norm(cands - m[:, None], axis=2), np.inf)
     out[corner] = cands[np.arange(m.shape[0]), dist.argmin(axis=1)]
     return out, corner
+
+
+def corner_fans(tips, own_normals, corner, shape, step_deg=CORNER_FAN_STEP_DEG):
+    """Points of the fan of surface the tool finishes standing at each corner vertex.
+
+    For every corner (see :func:`corner_limit`) the normals between n_a and n_b (on the great
+    circle, at most ``step_deg`` apart, both ends included) and, for each, the point of the tool at
+    the vertex whose surface has that normal (contact angle q = arccos n_z, at most 90°). The
+    gouge limit guards them like generating points, so that the vertices beside a corner (a slope
+    pass 0.1–0.3 mm before a wall's foot, moved +0.2 mm towards the wall) do not cut into it.
+
+    Returns
+    -------
+    ((f, 3) points in mm, (f, 3) unit normals, (f,) int: the index of the corner among ``corner``'s
+    true rows)
+    """
+    rows = np.flatnonzero(corner)
+    if rows.size == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64)
+    a, b = own_normals[rows, 0], own_normals[rows, 1]
+    angle = np.arccos(np.clip(np.einsum("ij,ij->i", a, b), -1.0, 1.0))
+    k = np.maximum(np.ceil(np.degrees(angle) / step_deg - 1e-9).astype(np.int64), 1) + 1
+    which = np.repeat(np.arange(rows.size), k)
+    t = (np.arange(which.size) - np.repeat(np.cumsum(k) - k, k)) / (k[which] - 1)
+    w = angle[which]
+    sw = np.maximum(np.sin(w), 1e-12)
+    n = (np.sin((1 - t) * w) / sw)[:, None] * a[which] + (np.sin(t * w) / sw)[:, None] * b[which]
+    n /= np.maximum(np.linalg.norm(n, axis=1), 1e-12)[:, None]
+    q = np.degrees(np.arccos(np.clip(n[:, 2], 0.0, 1.0)))
+    phi = np.degrees(np.arctan2(-n[:, 1], -n[:, 0]))
+    return tips[rows][which] + shape.point(q, phi), n, which
 
 
 def gouge_limit(total_um, tips, own, own_normals, gen_xyz, gen_normals, gen_pass, shape, sweeps=3):
@@ -691,14 +724,20 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
         stale = np.linalg.norm(vnormal, axis=1) <= 1e-12
         total_um[stale] = (last[stale] - orig[stale]) * 1000.0
     gouge_um = np.zeros(nb)
+    corner = np.zeros(nb, bool)
     if n_pass and p["hold_corners"]:
-        held, _ = corner_limit(total_um, own_normals)
+        held, corner = corner_limit(total_um, own_normals)
         gouge_um += np.linalg.norm(held - total_um, axis=1)
         total_um = held
     if n_pass and generating is not None and tool_shape is not None:
         gen_xyz, gen_n, gen_pass = _generating_points(generating, passes)
         if p["gouge_lines"]:
             gen_xyz, gen_n, gen_pass = contact_lines(gen_xyz, gen_n, gen_pass, pstart, pend, tool_shape)
+        if corner.any():
+            # the corners' fans are surfaces too (of no pass: ids below −1, one per corner)
+            fan_xyz, fan_n, fan_k = corner_fans(orig - frame, own_normals, corner, tool_shape)
+            gen_xyz, gen_n = np.vstack([gen_xyz, fan_xyz]), np.vstack([gen_n, fan_n])
+            gen_pass = np.concatenate([gen_pass, -2 - fan_k])
         total_um, taken = gouge_limit(total_um, orig - frame, own, own_normals, gen_xyz, gen_n,
                                       gen_pass, tool_shape)
         gouge_um += taken

@@ -14,8 +14,8 @@ import numpy as np
 import pyarrow as pa
 import pytest
 
-from stages.correct import (REFINE_MAX_RATIO, apply_corrected, contact_lines, corner_limit, correct_iteratively,
-                            correct_once, gouge_limit, vertex_moves)
+from stages.correct import (REFINE_MAX_RATIO, apply_corrected, contact_lines, corner_fans, corner_limit,
+                            correct_iteratively, correct_once, gouge_limit, vertex_moves)
 from stages.nc_writer import reverse_check, via_blocks, write_comp_table, write_ln_program, write_program
 from stages.parse import ARC_RADIUS_TOL_MM, parse_program
 from stages.split import split_blocks
@@ -1433,3 +1433,61 @@ def test_pocket_corner_vertex_holds_and_the_via_points_beside_it_carry_the_walls
     np.testing.assert_allclose(corner, 0.0, atol=1e-6)
     np.testing.assert_allclose(via_x, [0, -200.0, 0], atol=1e-6)
     np.testing.assert_allclose(via_y, [88.0, 0, 0], atol=1e-6)
+
+
+def test_corner_fans_are_the_ball_points_of_the_normals_between():
+    """The fan of a floor-wall corner (normals +z and −x) for a Ø10 ball with its tip at (1, 2, 3):
+    the point of normal n is the centre − 5 n (closed form), 9 steps of 10° from the floor's end
+    to the wall's; no fan where the normals are one."""
+    from stages.geometry import ToolShape
+    ball = ToolShape("ball", 5.0, 5.0, 40.0)
+    own = np.array([[[0, 0, 1.0], [-1.0, 0, 0]], [[0, 0, 1.0], [0, 0, 1.0]]])
+    pts, nrm, which = corner_fans(np.array([[1.0, 2, 3], [0, 0, 0]]), own, np.array([True, False]), ball)
+    t = np.radians(np.linspace(0.0, 90.0, 10))
+    np.testing.assert_allclose(nrm, np.stack([-np.sin(t), 0 * t, np.cos(t)], 1), atol=1e-12)
+    np.testing.assert_allclose(pts, np.array([1.0, 2, 8]) - 5.0 * nrm, atol=1e-9)
+    assert which.tolist() == [0] * 10
+
+
+def test_the_fan_of_a_wall_foot_limits_the_slope_vertex_beside_it():
+    """The sample's pocket wall foot (x 78, y 36.6): a slope pass (overcut 300 µm along its normal
+    20° from +z towards +x) ends 0.15 mm before the corner where a floor pass meets a wall climb
+    (wall at x 7.15, normals +z and −x). Its vertex is asked to move 300 µm along +x; the ball
+    there is 0.15 mm from the wall's foot, the fillet the ball standing at the corner finishes
+    (the arc of radius 5 about (2.15, 0, 5), written out here). The wall's generating point, 2 mm up
+    its 2° draft, lets the vertex move 0.22 mm towards the wall, into the foot; with
+    ``hold_corners`` the gouge limit guards that fan and the moved ball stays off the arc (brute
+    force)."""
+    from stages.geometry import ToolShape
+    ball = ToolShape("ball", 5.0, 5.0, 40.0)
+    text = b"\n".join([b"%", b"O0001", b"G90 G17 G21", b"T1 M6", b"S8000 M3", b"G0 X-2. Y0. Z10.",
+                       b"G1 Z0.728 F500", b"X2. Z0.", b"X2.15", b"X2.29 Z4.", b"G0 Z50.", b"M30", b"%", b""])
+    blocks, _ = parse_program(text, "foot.nc", "p")
+    passes = split_blocks(blocks, SPLIT)
+    p0, p1 = _xyz_of(passes, 0), _xyz_of(passes, 1)
+    slope = (p0[:, 0] == -2.0) & (p1[:, 0] == 2.0)
+    floor = (p0[:, 0] == 2.0) & (p1[:, 0] == 2.15)
+    wall = (p1[:, 2] == 4.0) & (p0[:, 2] == 0.0)          # climbed with a 2° draft, as on the sample
+    s20 = np.radians(20.0)
+    normals = np.zeros((passes.num_rows, 3))
+    normals[slope], normals[floor], normals[wall] = [np.sin(s20), 0, np.cos(s20)], [0, 0, 1.0], [-1.0, 0, 0]
+    err = np.where(slope, -300.0, 0.0)
+    keep = slope | floor | wall
+    errors = _errors(passes, err, normals).filter(pa.array(keep))
+    generating = pa.table({"program_id": ["p"], "pass_id": passes.column("pass_id").filter(pa.array(wall)),
+                           "gen_x_mm": [7.22], "gen_y_mm": [0.0], "gen_z_mm": [7.0],
+                           "nx": [-1.0], "ny": [0.0], "nz": [0.0]})
+    t = np.radians(np.linspace(0.0, 90.0, 181))
+    arc = np.stack([2.15 + 5 * np.sin(t), 0 * t, 5 - 5 * np.cos(t)], 1)     # the corner's fillet
+
+    def slope_end(hold):
+        c = correct_once(blocks, passes, errors, {"correct": {"max_move_um": 300.0, "hold_corners": hold}},
+                         generating=generating, tool_shape=ball)
+        xyz = np.stack([c.column(k).to_numpy() for k in ("x_mm", "y_mm", "z_mm")], 1)
+        new = np.stack([c.column(k).to_numpy() for k in ("x_new_mm", "y_new_mm", "z_new_mm")], 1)
+        return new[np.flatnonzero(np.all(np.abs(xyz - [2.0, 0, 0]) < 1e-9, axis=1))[0]]
+
+    assert _ball_clearance(arc, slope_end(False), 5.0).min() < -0.06     # 70 µm into the foot
+    tip = slope_end(True)
+    assert _ball_clearance(arc, tip, 5.0).min() >= -0.003
+    assert tip[0] - 2.0 > 0.1                     # it still moves towards the wall, as far as it may
