@@ -277,6 +277,11 @@ def corner_limit(total_um, own_normals):
     (+88, +203) µm, cut the fan to −250…−320 µm. The move is projected onto that cone (the
     nearest move within it); the walls' own moves are carried by the vertices of the passes that
     leave the corner (with ``split.end_piece_mm`` and via points, a short piece away).
+    Off by default (``correct.hold_corners``): on the whole sample program (with via points and
+    0.5 mm end pieces) that fan was cut to −250…−450 µm all the same, the x wall's foot beside it
+    went from +185 to +250 µm (its vertex no longer moves in) and the program got worse, 37.2 →
+    57.3 % after three rounds; window x 74–82, y 36–40 (the slope beside a wall's foot, which
+    :func:`corner_fans` guards) improved, 42.9 → 31.1 %.
 
     Parameters
     ----------
