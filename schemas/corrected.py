@@ -23,7 +23,8 @@ SCHEMA = pa.schema([
     pa.field('change_um', pa.float64()),      # |move| of the last round (iteration stops below tol_um)
     pa.field('clipped', pa.bool_()),          # the move was limited to correct.max_move_um
     pa.field('gouge_limit_um', pa.float64()), # taken off the move so the tool stays off the surface
-                                              # other passes generate (stages.correct.gouge_limit)
+                                              # other passes generate (stages.correct.gouge_limit;
+                                              # with correct.hold_corners also out of a corner's fan)
     pa.field('iteration', pa.int32()),        # rounds of predict → correct run so far
     pa.field('relax', pa.float64()),          # fraction of its step the vertex took in the last round
     pa.field('step_x_um', pa.float64()),      # the step the last round's errors asked for (before the
