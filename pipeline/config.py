@@ -113,6 +113,10 @@ class Split(_Strict):
     # a split move's first and last piece this long (0: equal pieces only); with correct.via_points
     # the vertex a long line shares with a pocket corner gets a via point this far along it
     end_piece_mm: float = Field(0.0, ge=0)
+    # a G1 line meeting another at a path corner (a turn over 30°) gets a piece this long at that
+    # end (0: none): the passes beside a corner are predicted, and with correct.via_points
+    # corrected, apart from the line's body (stages.split.corner_ends)
+    corner_piece_mm: float = Field(0.0, ge=0)
     merge_max_mm: float = Field(0.5, ge=0)            # short moves merged into passes up to this long
 
 

@@ -52,7 +52,8 @@ def _table_np(table: pa.Table, name: str, dtype=float):
 _VIA_LETTERS = frozenset(b"NGXYZF")
 
 
-def via_blocks(data: bytes, blocks: pa.Table, max_mm: float, end_mm: float = 0.0) -> pa.Table:
+def via_blocks(data: bytes, blocks: pa.Table, max_mm: float, end_mm: float = 0.0,
+               corner_mm: float = 0.0) -> pa.Table:
     """``blocks`` with every long plain G1 line cut into the split stage's equal pieces.
 
     Parameters
@@ -62,6 +63,8 @@ def via_blocks(data: bytes, blocks: pa.Table, max_mm: float, end_mm: float = 0.0
     max_mm : ``split.max_pass_mm``: a line of length L becomes ceil(L / max_mm) blocks, exactly the
         pieces :func:`stages.split.split_long` makes, so the passes do not change
     end_mm : ``split.end_piece_mm``: the length of the first and last piece (0: equal pieces)
+    corner_mm : ``split.corner_piece_mm``: the length of the piece at a path corner
+        (:func:`stages.split.corner_ends`; 0: none); such a line is cut even if it is short
 
     Returns
     -------
@@ -75,8 +78,15 @@ def via_blocks(data: bytes, blocks: pa.Table, max_mm: float, end_mm: float = 0.0
     line = _table_np(blocks, "line_no", np.int64) - 1
     p0 = np.stack([_table_np(blocks, c) for c in ("x0_mm", "y0_mm", "z0_mm")], 1)
     p1 = np.stack([_table_np(blocks, c) for c in ("x1_mm", "y1_mm", "z1_mm")], 1)
-    k = np.ceil(np.linalg.norm(p1 - p0, axis=1) / max_mm - 1e-9).astype(np.int64)
-    cut = ((motion == 1) & (k > 1) & ~_table_np(blocks, "incremental", bool) & ~_table_np(blocks, "inch", bool))
+    from stages.split import corner_ends, split_long
+    length = np.linalg.norm(p1 - p0, axis=1)
+    k = np.ceil(length / max_mm - 1e-9).astype(np.int64)
+    corner = corner_ends(p0, p1, motion == 1) if corner_mm > 0 else None
+    pieces = k > 1
+    if corner is not None:                       # the lines split_long gives a corner piece
+        pieces |= (corner[0] | corner[1]) & (length - corner_mm * (corner[0].astype(float) + corner[1])
+                                             >= corner_mm * (1 - 1e-9))
+    cut = ((motion == 1) & pieces & ~_table_np(blocks, "incremental", bool) & ~_table_np(blocks, "inch", bool))
     # one block on the line, and only words an inserted line may carry
     cut &= np.bincount(line, minlength=line.max() + 1)[line] == 1
     if cut.any():
@@ -94,8 +104,7 @@ def via_blocks(data: bytes, blocks: pa.Table, max_mm: float, end_mm: float = 0.0
         cut &= ~bad_line[line]
     if not cut.any():
         return blocks
-    from stages.split import split_long
-    idx, q0, q1, _ = split_long(np.arange(n), p0, p1, cut, max_mm, end_mm)
+    idx, q0, q1, _ = split_long(np.arange(n), p0, p1, cut, max_mm, end_mm, corner_mm, corner)
     out = blocks.take(pa.array(idx))
     cols = dict(zip(("x0_mm", "y0_mm", "z0_mm", "x1_mm", "y1_mm", "z1_mm"), (*q0.T, *q1.T)))
     cols["block_no"] = np.arange(1, idx.size + 1, dtype=np.int32)

@@ -7,6 +7,11 @@ Here:
 - arcs (G2/G3, helical included) become chords whose sagitta stays within ``split.chord_tol_mm``;
 - cutting moves longer than ``split.max_pass_mm`` are cut into equal pieces (with
   ``split.end_piece_mm`` > 0, after a piece that long at each end);
+- with ``split.corner_piece_mm`` > 0, a G1 line that meets another G1 line at a path corner (the
+  direction turns by more than :data:`CORNER_TURN_DEG`) gets a piece that long at that end, if its
+  rest is at least as long: the passes beside a corner are predicted apart from the line's body
+  (the tooth passages of the other line at the corner finish the surface there, see
+  ``passage_envelope``) and, with ``correct.via_points``, corrected apart;
 - runs of short consecutive cutting moves are merged into passes no longer than
   ``split.merge_max_mm``, but only where every merged vertex stays within ``chord_tol_mm`` of the
   merged pass, so merging never moves the path by more than the chord tolerance;
@@ -28,6 +33,10 @@ VERSION = "1"
 INPUTS = ("parse_status", "blocks")
 OUTPUTS = ("passes", "programs")
 PARAMS = ("split", "machine.rapid_mm_min", "tool")
+
+# a path turning by more than this between two G1 lines is a corner (``split.corner_piece_mm``);
+# the same angle as ``stages.correct.CORNER_DEG`` between two passes' normals
+CORNER_TURN_DEG = 30.0
 
 _XYZ0 = ("x0_mm", "y0_mm", "z0_mm")
 _XYZ1 = ("x1_mm", "y1_mm", "z1_mm")
@@ -86,14 +95,47 @@ def arc_chords(start, end, centre, plane, ccw, tol):
     return owner, p0, p1
 
 
-def split_long(owner, p0, p1, is_cut, max_len, end_len=0.0):
+def corner_ends(p0, p1, is_line, turn_deg=None):
+    """Which segments start and end at a path corner.
+
+    A corner is the joint of two consecutive G1 lines (the end of one is the start of the next)
+    where the direction turns by more than ``turn_deg`` (:data:`CORNER_TURN_DEG`): a row turning
+    up a wall, a pocket's corner in plan view. Joints with arcs are not corners (CAM links with
+    tangent arcs).
+
+    Parameters
+    ----------
+    p0, p1 : (n, 3) float, segment start and end points in program order, mm
+    is_line : (n,) bool, the segment is a G1 line (not a rapid, not an arc's chord)
+
+    Returns
+    -------
+    (at_start, at_end) : (n,) bool each
+    """
+    turn_deg = CORNER_TURN_DEG if turn_deg is None else turn_deg
+    n = len(p0)
+    at_start, at_end = np.zeros(n, bool), np.zeros(n, bool)
+    if n < 2:
+        return at_start, at_end
+    d = np.asarray(p1, float) - np.asarray(p0, float)
+    length = np.linalg.norm(d, axis=1)
+    u = d / np.where(length > 0, length, 1.0)[:, None]
+    line = np.asarray(is_line, bool) & (length > 1e-9)
+    joined = line[:-1] & line[1:] & np.all(np.abs(np.asarray(p1)[:-1] - np.asarray(p0)[1:]) < 1e-9, axis=1)
+    corner = joined & (np.einsum("ij,ij->i", u[:-1], u[1:]) < np.cos(np.radians(turn_deg)))
+    at_end[:-1], at_start[1:] = corner, corner
+    return at_start, at_end
+
+
+def split_long(owner, p0, p1, is_cut, max_len, end_len=0.0, corner_len=0.0, corner=None):
     """Cut cutting segments longer than ``max_len`` into equal pieces.
 
     With ``end_len`` > 0 such a segment first gets a piece of ``end_len`` at each end and its middle
-    is cut into equal pieces (``split.end_piece_mm``): a vertex where a long line meets another
-    surface (a pocket corner) then has a via point ``end_len`` away that carries the line's own
-    correction (stages.correct: such a corner vertex is not moved into the corner, see
-    ``CORNER_DEG`` there).
+    is cut into equal pieces (``split.end_piece_mm``). With ``corner_len`` > 0 a cutting segment
+    (of any length) whose start or end is a path corner (``corner`` = (at_start, at_end), see
+    :func:`corner_ends`) gets a piece of ``corner_len`` at that end where it has no end piece,
+    if what is left is at least ``corner_len`` long (``split.corner_piece_mm``). A corner vertex
+    then has a via point that carries the line's own correction a short piece away.
 
     Returns
     -------
@@ -103,17 +145,26 @@ def split_long(owner, p0, p1, is_cut, max_len, end_len=0.0):
     length = np.linalg.norm(p1 - p0, axis=1)
     long_ = is_cut & (length > max_len * (1 + 1e-9))
     ends = long_ & (end_len > 0) & (length > 2 * end_len * (1 + 1e-9))
-    middle = np.where(ends, length - 2 * end_len, length)
+    s0 = np.where(ends, float(end_len), 0.0)
+    s1 = s0.copy()
+    if corner_len > 0 and corner is not None:
+        c0 = is_cut & np.asarray(corner[0], bool) & (s0 == 0)
+        c1 = is_cut & np.asarray(corner[1], bool) & (s1 == 0)
+        rest = length - s0 - s1 - corner_len * (c0.astype(float) + c1)
+        fits = rest >= corner_len * (1 - 1e-9)
+        s0 = np.where(c0 & fits, float(corner_len), s0)
+        s1 = np.where(c1 & fits, float(corner_len), s1)
+    h0, h1 = (s0 > 0).astype(np.int64), (s1 > 0).astype(np.int64)
+    middle = length - s0 - s1
     k_mid = np.where(long_, np.maximum(1, np.ceil(middle / max_len - 1e-9)), 1).astype(np.int64)
-    k = k_mid + 2 * ends
+    k = k_mid + h0 + h1
     idx = np.repeat(np.arange(owner.size), k)
     first = np.concatenate(([0], np.cumsum(k)[:-1]))
     j = np.arange(idx.size) - first[idx]
-    # distance of every cut from the segment's start: [0, e, e + m/k_mid, …, L − e, L] with end pieces
+    # distance of every cut from the segment's start: [0, s0, s0 + m/k_mid, …, L − s1, L]
     def at(jj):
-        e = np.where(ends[idx], end_len, 0.0)
-        jm = np.clip(jj - ends[idx], 0, k_mid[idx])
-        return np.where(jj >= k[idx], length[idx], e * (jj > 0) + middle[idx] * jm / k_mid[idx])
+        jm = np.clip(jj - h0[idx], 0, k_mid[idx])
+        return np.where(jj >= k[idx], length[idx], s0[idx] * (jj > 0) + middle[idx] * jm / k_mid[idx])
     d = (p1 - p0)[idx] / np.where(length > 0, length, 1.0)[idx, None]
     q0 = p0[idx] + d * at(j)[:, None]
     q1 = np.where((j + 1 == k[idx])[:, None], p1[idx], p0[idx] + d * at(j + 1)[:, None])
@@ -194,7 +245,10 @@ def split_blocks(blocks: pa.Table, params: dict) -> pa.Table:
 
     # 2. long cutting moves split; 3. short runs merged
     is_cut = motion[owner] != RAPID
-    owner, p0, p1, piece = split_long(owner, p0, p1, is_cut, sp["max_pass_mm"], sp.get("end_piece_mm", 0.0))
+    corner_mm = float(sp.get("corner_piece_mm", 0.0))
+    corner = corner_ends(p0, p1, motion[owner] == 1) if corner_mm > 0 else None
+    owner, p0, p1, piece = split_long(owner, p0, p1, is_cut, sp["max_pass_mm"], sp.get("end_piece_mm", 0.0),
+                                      corner_mm, corner)
     feed = np.nan_to_num(b["feed_mm_min"].astype(float))
     seg_feed = np.where(motion[owner] == RAPID, machine["rapid_mm_min"], feed[owner])
     same_kind = np.ones(owner.size, bool)

@@ -1363,6 +1363,57 @@ def test_end_pieces_cut_long_lines_the_same_in_via_blocks_and_passes():
                                [0.2, 0.5, 4.6, 4.6, 0.5, 0.2], atol=1e-12)
 
 
+_CORNER_PROGRAM = b"\n".join([
+    b"%", b"O0013", b"G90 G21 G17", b"T1 M6", b"S8000 M3", b"G0 X0. Y0. Z5.",
+    b"G1 Z0. F100",               # 5 mm plunge (a rapid before it is no corner): 4.5 + 0.5
+    b"X10. F300",                 # 10 mm, 90° at both ends: 0.5 + 4.5 + 4.5 + 0.5
+    b"Y10.",                      # 10 mm, corners at both ends (90°, 45°): 0.5 + 4.5 + 4.5 + 0.5
+    b"X10.8 Y10.8",               # 1.13 mm between two 45° corners: too short for two pieces
+    b"X13.8",                     # 3 mm, 45° at its start; 18.4° at its end is no corner: 0.5 + 2.5
+    b"X16.8 Z1.",                 # 3.16 mm, no corner
+    b"G0 Z50.", b"M30", b"%", b""])
+
+
+def test_corner_pieces_cut_lines_at_path_corners_the_same_in_via_blocks_and_passes():
+    """``split.corner_piece_mm``: a G1 line gets a 0.5 mm piece at each end where the path turns by
+    more than 30° onto another G1 line (lengths by hand), if its rest is at least 0.5 mm; the via
+    blocks cut at the same points; with no error the corrected program is the source, byte for
+    byte, and moves that differ between a corner piece and its line's body are written as a via
+    line that reverse-checks."""
+    split = {**SPLIT, "split": {**SPLIT["split"], "corner_piece_mm": 0.5}}
+    blocks, _ = parse_program(_CORNER_PROGRAM, "c", "p")
+    passes = split_blocks(blocks, split)
+    line = passes.column("line_no").to_numpy()
+    length = np.linalg.norm(_xyz_of(passes, 1) - _xyz_of(passes, 0), axis=1)
+    expect = {7: [4.5, 0.5], 8: [0.5, 4.5, 4.5, 0.5], 9: [0.5, 4.5, 4.5, 0.5], 10: [np.sqrt(1.28)],
+              11: [0.5, 2.5], 12: [np.sqrt(10.0)]}
+    for k, v in expect.items():
+        np.testing.assert_allclose(length[line == k], v, atol=1e-12, err_msg=f"line {k}")
+    # without the option only the long lines are cut
+    assert split_blocks(blocks, SPLIT).num_rows == passes.num_rows - 6
+    vb = via_blocks(_CORNER_PROGRAM, blocks, 5.0, 0.0, 0.5)
+    assert [int((vb.column("line_no").to_numpy() == k).sum()) for k in expect] == [2, 4, 4, 1, 2, 1]
+    again = split_blocks(vb, split)
+    assert again.num_rows == passes.num_rows
+    for c in ("x0_mm", "y0_mm", "z0_mm", "x1_mm", "y1_mm", "z1_mm", "motion", "line_no"):
+        assert np.allclose(passes.column(c).to_numpy(), again.column(c).to_numpy(), atol=1e-12), c
+    cut = passes.column("motion").to_numpy() != 0
+    normal = np.tile([0, -1.0, 0], (passes.num_rows, 1))
+    none = correct_once(vb, again, _errors(again, np.zeros(again.num_rows), normal).slice(0, 0), {"correct": {}})
+    assert write_program(_CORNER_PROGRAM, vb, none) == _CORNER_PROGRAM
+    # the corner piece at the end of line 8 finished to the design by the next line's passages
+    # (error 0), the rest of the line 30 µm short: the vertex between them moves by the mean,
+    # 15 µm, the corner not at all, the line's start 30 µm; written as a via line
+    e = np.where(line == 8, 30.0, 0.0)
+    e[np.flatnonzero(line == 8)[-1]] = 0.0
+    err = _errors(again, e, normal).filter(pa.array(cut & (line == 8)))
+    c = correct_once(vb, again, err, {"correct": {}})
+    out = write_program(_CORNER_PROGRAM, vb, c)
+    assert b"G1 X9.500 Y0.015 Z0.000" in out
+    rep = reverse_check(out, vb, c)
+    assert rep["ok"], rep["message"]
+
+
 def _xyz_of(passes, end):
     return np.stack([passes.column(f"{a}{end}_mm").to_numpy() for a in "xyz"], 1)
 
