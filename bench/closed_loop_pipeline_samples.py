@@ -23,10 +23,12 @@ walls and the boss, where the error is):
         13–70 min per program on one core, 43,326 probe points at 0.1 mm; the programs not in its
         cache are machined side by side, one process a core)
 
-``--rounds`` lists the round counts to run (default 1 and 3). The virtual machine's probes are kept
-under ``<out>/vm_cache`` keyed by a hash of the program text, the machine's own source, the
-workflow's tool, material, machine and stock, the window and the spacing: the rigid reference and
-the original program are machined once for any number of pipeline experiments. ``points.parquet``
+``--rounds`` lists the round counts to run (default 1 and 3). The virtual machine cuts every program
+as passes of the workflow's chord tolerance, pass length and merge length only (:data:`VM_SPLIT`:
+the end and corner pieces of ``--set split.…`` change what the pipeline predicts, not the machine).
+Its probes are kept under ``<out>/vm_cache`` keyed by a hash of those passes, the machine's own
+source, the workflow's tool, material, machine and stock, the window and the spacing: the rigid
+reference and the original program are machined once for any number of pipeline experiments. ``points.parquet``
 beside the summary holds every probe point with its error per program and the pass nearest it
 (the machine's own association) with that pass's predicted error from the first round's tables:
 where the prediction and the machine disagree.
@@ -116,12 +118,39 @@ def workflow(root: Path, max_iter: int, prune_deg=None, max_move_um=None, correc
 Q_BANDS = ((0.0, 30.0, "q<30"), (30.0, 60.0, "q30-60"), (60.0, 91.0, "q>=60"))
 
 
-def _vm_key(*parts) -> str:
-    """Content key of a virtual-machine probe: the machine's own code and every input it reads."""
+# the machine cuts every program as passes of the same length, whatever piece options the
+# predicting workflow has (split.end_piece_mm, split.corner_piece_mm): the machine's physics (one
+# deflection per pass) must not change with the pipeline's options
+VM_SPLIT = ("chord_tol_mm", "max_pass_mm", "merge_max_mm")
+
+
+def _vm_split(wf: dict) -> dict:
+    return {k: wf["split"][k] for k in VM_SPLIT}
+
+
+def _vm_passes(text: bytes, wf: dict):
+    """The passes the virtual machine cuts ``text`` as (parse, then split with :data:`VM_SPLIT`)."""
+    from stages.parse import parse_program
+    from stages.split import split_blocks
+    nominal = {k: v for k, v in wf["tool"].items() if k != "profile"}
+    b, _ = parse_program(text, "vm.nc", "band")
+    return split_blocks(b, {"split": _vm_split(wf), "machine": wf["machine"], "tool": nominal})
+
+
+def _vm_key(text: bytes, wf: dict, *parts) -> str:
+    """Content key of a virtual-machine probe: the machine's own code, the passes it cuts ``text``
+    as (not the parser's source: a change there that leaves the passes alone keeps the cache) and
+    every other input it reads."""
     import hashlib
     h = hashlib.sha256()
-    for f in ("stages/virtual_machine.py", "stages/gap_geometry.py", "stages/parse.py", "stages/split.py"):
+    for f in ("stages/virtual_machine.py", "stages/gap_geometry.py"):
         h.update((ROOT / f).read_bytes())
+    import pyarrow as pa
+    sink = pa.BufferOutputStream()
+    passes = _vm_passes(text, wf)
+    with pa.ipc.new_stream(sink, passes.schema) as writer:
+        writer.write_table(passes)
+    h.update(sink.getvalue().to_pybytes())
     for part in parts:
         h.update(part if isinstance(part, bytes) else json.dumps(part, sort_keys=True, default=str).encode())
     return h.hexdigest()[:24]
@@ -147,14 +176,10 @@ def _machine(text: bytes, rigid: bool, wf: dict, window):
     tool on a rigid machine: the error is deflection plus tool shape, both of which the prediction
     corrects."""
     import pyarrow as pa
-    from stages.parse import parse_program
-    from stages.split import split_blocks
     from stages.virtual_machine import VirtualMachine
     x0, x1, y0, y1 = window
     nominal = {k: v for k, v in wf["tool"].items() if k != "profile"}
-    split = {"split": wf["split"], "machine": wf["machine"], "tool": nominal}
-    b, _ = parse_program(text, "vm.nc", "band")
-    passes = split_blocks(b, split)
+    passes = _vm_passes(text, wf)
     g = lambda c: passes.column(c).to_numpy()  # noqa: E731
     lo, hi = np.minimum(g("x0_mm"), g("x1_mm")), np.maximum(g("x0_mm"), g("x1_mm"))
     ylo, yhi = np.minimum(g("y0_mm"), g("y1_mm")), np.maximum(g("y0_mm"), g("y1_mm"))
@@ -180,7 +205,7 @@ def vm_errors(window, programs: dict, wf: dict, spacing_mm: float = 0.1, cache: 
     import pyarrow.parquet as pq
     from stages.virtual_machine import grid_plan
     x0, x1, y0, y1 = window
-    inputs = [wf["tool"], wf["material"], wf["machine"], wf["split"], list(window), spacing_mm]
+    inputs = [wf["tool"], wf["material"], wf["machine"], _vm_split(wf), list(window), spacing_mm]
     for f in (wf["stock"], wf["tool"].get("profile"), wf["machine"]["frf"].get("table")):
         if f:
             inputs.append(Path(f).read_bytes())
@@ -198,9 +223,9 @@ def vm_errors(window, programs: dict, wf: dict, spacing_mm: float = 0.1, cache: 
     def probed(text):
         def run():
             return machined[text] if text in machined else _machined_error(text, wf, window, pts, nrm, ideal)
-        return (_cached(cache, _vm_key(text, *inputs), run) if cache else run())["err"]
+        return (_cached(cache, _vm_key(text, wf, *inputs), run) if cache else run())["err"]
 
-    ref = _cached(cache, _vm_key(b"rigid", programs["original"], *inputs), reference) if cache else reference()
+    ref = _cached(cache, _vm_key(programs["original"], wf, b"rigid", *inputs), reference) if cache else reference()
     pts, nrm, ideal = ref["pts"], ref["nrm"], ref["ideal"]
     if len(pts) == 0:
         return None
@@ -213,7 +238,7 @@ def vm_errors(window, programs: dict, wf: dict, spacing_mm: float = 0.1, cache: 
         lut = dict(zip(pid.tolist(), perr.tolist()))
         cols["predicted_um"] = np.array([lut.get(int(i), np.nan) for i in ref["pass_id"]])
     todo = list(dict.fromkeys(t for t in programs.values()
-                              if cache is None or not (cache / f"{_vm_key(t, *inputs)}.npz").is_file()))
+                              if cache is None or not (cache / f"{_vm_key(t, wf, *inputs)}.npz").is_file()))
     if len(todo) > 1:                           # the machine runs on one core: one program a core
         with ProcessPoolExecutor(min(len(todo), os.cpu_count() or 1)) as pool:
             futures = [pool.submit(_machined_error, t, wf, window, pts, nrm, ideal) for t in todo]
