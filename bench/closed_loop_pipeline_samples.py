@@ -256,6 +256,25 @@ def vm_errors(window, programs: dict, wf: dict, spacing_mm: float = 0.1, cache: 
     return out
 
 
+def run_in_group(cmd: list, cwd: Path) -> tuple[int, str, str]:
+    """Run ``cmd`` (the pipeline and its Dask workers) in a process group of its own, killed with
+    the bench: a bench stopped by SIGTERM or Ctrl-C leaves no pipeline writing into its run
+    directory behind it."""
+    import signal
+    proc = subprocess.Popen(cmd, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    try:
+        out, err = proc.communicate()
+    except BaseException:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        proc.wait()
+        raise
+    return proc.returncode, out, err
+
+
 def main():
     import yaml
     ap = argparse.ArgumentParser()
@@ -291,11 +310,12 @@ def main():
         written, wall = {"original": band}, {}
         for mi in sorted(int(r) for r in args.rounds.split(",")):
             t0 = time.perf_counter()
-            r = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", str(workflow(root, mi, args.prune, args.max_move, args.correct, args.other)),
-                                "--workers", str(args.workers), "-q"], cwd=root, capture_output=True, text=True)
+            rc, out, err = run_in_group([sys.executable, "-m", "pipeline.cli", "run",
+                                         str(workflow(root, mi, args.prune, args.max_move, args.correct, args.other)),
+                                         "--workers", str(args.workers), "-q"], cwd=root)
             wall[mi] = round(time.perf_counter() - t0, 1)
-            if r.returncode != 0:
-                raise SystemExit(r.stdout + r.stderr)
+            if rc != 0:
+                raise SystemExit(out + err)
             written[f"{mi} round{'s' if mi > 1 else ''}"] = (root / "out" / "nc" / "band.nc").read_bytes()
         run = json.loads((root / "out" / "run.json").read_text())
         rounds = run.get("correct_rounds", {}).get("band", [])
@@ -329,5 +349,7 @@ def main():
 
 
 if __name__ == "__main__":
+    import signal
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))   # SystemExit reaches run_in_group
     os.chdir(ROOT)
     main()
