@@ -54,6 +54,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 PROGRAM = ROOT / "data_samples/nc/mould_finish_t1.nc"
+WORKFLOW = ROOT / "workflows/mould.yaml"
 WINDOWS = ((22.0, 32.0, 41.0, 45.0), (68.0, 78.0, 41.0, 45.0), (54.0, 62.0, 53.0, 57.0))
 MARGIN_MM = 6.0          # passes machined on the VM: within this of the window (they shape its surface)
 
@@ -86,14 +87,20 @@ def window_program(src: bytes, x0: float, x1: float, y0: float, y1: float) -> by
     return "\n".join(out).encode()
 
 
-def workflow(root: Path, max_iter: int, prune_deg=None, max_move_um=None, correct_opts=(), other_opts=()) -> Path:
+def workflow(root: Path, max_iter: int, prune_deg=None, max_move_um=None, correct_opts=(), other_opts=(),
+             base: Path = WORKFLOW) -> Path:
     import yaml
-    wf = yaml.safe_load((ROOT / "workflows/mould.yaml").read_text())
+    wf = yaml.safe_load(Path(base).read_text())
+    # the run directory is elsewhere: the workflow's input files by absolute path
     for k in ("stock", "nominal"):
-        wf[k] = str(ROOT / wf[k])
-    wf["tool"]["profile"] = str(ROOT / wf["tool"]["profile"])
-    wf["machine"]["frf"]["table"] = str(ROOT / wf["machine"]["frf"]["table"])
-    wf.pop("until", None)
+        if wf.get(k):
+            wf[k] = str(ROOT / wf[k])
+    if wf["tool"].get("profile"):
+        wf["tool"]["profile"] = str(ROOT / wf["tool"]["profile"])
+    if wf["machine"]["frf"].get("table"):
+        wf["machine"]["frf"]["table"] = str(ROOT / wf["machine"]["frf"]["table"])
+    for k in ("until", "measurements"):
+        wf.pop(k, None)
     # one output (cache) for both runs: the three-round run takes round 1 from the cache
     wf.update({"name": "band", "programs": "nc/*.nc", "output": "out"})
     wf["correct"] = {**wf["correct"], "max_iter": max_iter}
@@ -185,7 +192,7 @@ def _machine(text: bytes, rigid: bool, wf: dict, window):
     ylo, yhi = np.minimum(g("y0_mm"), g("y1_mm")), np.maximum(g("y0_mm"), g("y1_mm"))
     near = (hi > x0 - MARGIN_MM) & (lo < x1 + MARGIN_MM) & (yhi > y0 - MARGIN_MM) & (ylo < y1 + MARGIN_MM)
     frf = ({a: [{"fn_hz": 900.0, "zeta": 0.03, "k_n_per_um": 1e9}] for a in "xy"} if rigid
-           else {"table": wf["machine"]["frf"]["table"]})
+           else wf["machine"]["frf"])
     return VirtualMachine(passes.filter(pa.array(near)), nominal if rigid else wf["tool"], wf["material"],
                           {"frf": frf}, wf["stock"])
 
@@ -293,12 +300,16 @@ def main():
     ap.add_argument("--workers", type=int, default=1, help="Dask workers of the pipeline runs")
     ap.add_argument("--spacing", type=float, default=0.1, help="probe spacing along the passes, mm")
     ap.add_argument("--rounds", default="1,3", help="round counts of the corrected programs, comma-separated")
+    ap.add_argument("--program", type=Path, default=PROGRAM,
+                    help="the NC program (windows are cut from it as raster rows along X)")
+    ap.add_argument("--workflow", type=Path, default=WORKFLOW,
+                    help="the workflow whose tool, material, machine, stock and settings the runs use")
     ap.add_argument("window", nargs="*", type=float)
     args = ap.parse_args()
     wins = [tuple(args.window[i:i + 4]) for i in range(0, len(args.window), 4)] or list(WINDOWS)
     if args.whole:
         wins = [(-1e9, 1e9, -1e9, 1e9)]
-    src = PROGRAM.read_bytes()
+    src = args.program.resolve().read_bytes()
     report = []
     for w in wins:
         root = Path(args.out) / ("whole" if args.whole else "x%g-%g_y%g-%g" % w)
@@ -311,7 +322,8 @@ def main():
         for mi in sorted(int(r) for r in args.rounds.split(",")):
             t0 = time.perf_counter()
             rc, out, err = run_in_group([sys.executable, "-m", "pipeline.cli", "run",
-                                         str(workflow(root, mi, args.prune, args.max_move, args.correct, args.other)),
+                                         str(workflow(root, mi, args.prune, args.max_move, args.correct, args.other,
+                                                      args.workflow.resolve())),
                                          "--workers", str(args.workers), "-q"], cwd=root)
             wall[mi] = round(time.perf_counter() - t0, 1)
             if rc != 0:

@@ -53,8 +53,9 @@ _VIA_LETTERS = frozenset(b"NGXYZF")
 
 
 def via_blocks(data: bytes, blocks: pa.Table, max_mm: float, end_mm: float = 0.0,
-               corner_mm: float = 0.0) -> pa.Table:
-    """``blocks`` with every long plain G1 line cut into the split stage's equal pieces.
+               corner_mm: float = 0.0, chord_tol_mm: float | None = None) -> pa.Table:
+    """``blocks`` with every long plain G1 line cut into the split stage's equal pieces, and with
+    ``chord_tol_mm`` every plain arc into the split stage's chords.
 
     Parameters
     ----------
@@ -65,11 +66,16 @@ def via_blocks(data: bytes, blocks: pa.Table, max_mm: float, end_mm: float = 0.0
     end_mm : ``split.end_piece_mm``: the length of the first and last piece (0: equal pieces)
     corner_mm : ``split.corner_piece_mm``: the length of the piece at a path corner
         (:func:`stages.split.corner_ends`; 0: none); such a line is cut even if it is short
+    chord_tol_mm : ``split.chord_tol_mm``; None: arcs are not cut. An absolute metric arc (G2/G3
+        word on its own line, no words but N, G, X, Y, Z, I, J, K, R, F; G words only 2, 3, 17,
+        18, 19) of two or more chords becomes its chords as G1 pieces, the last chord staying the
+        arc (same centre): one arc refitted through its moved ends cannot follow an error that
+        changes along it (the sample boss's contour: +35 µm on one side, +7 µm a quarter turn on)
 
     Returns
     -------
-    ``blocks`` table: the pieces of a cut line share its ``line_no`` (every piece but the last is a
-    via point :func:`write_program` may insert); ``block_no`` is renumbered in order.
+    ``blocks`` table: the pieces of a cut line or arc share its ``line_no`` (every piece but the
+    last is a via point :func:`write_program` may insert); ``block_no`` is renumbered in order.
     """
     n = blocks.num_rows
     if n == 0 or max_mm <= 0:
@@ -86,38 +92,91 @@ def via_blocks(data: bytes, blocks: pa.Table, max_mm: float, end_mm: float = 0.0
     if corner is not None:                       # the lines split_long gives a corner piece
         pieces |= (corner[0] | corner[1]) & (length - corner_mm * (corner[0].astype(float) + corner[1])
                                              >= corner_mm * (1 - 1e-9))
-    cut = ((motion == 1) & pieces & ~_table_np(blocks, "incremental", bool) & ~_table_np(blocks, "inch", bool))
-    # one block on the line, and only words an inserted line may carry
-    cut &= np.bincount(line, minlength=line.max() + 1)[line] == 1
-    if cut.any():
+    plain = ~_table_np(blocks, "incremental", bool) & ~_table_np(blocks, "inch", bool)
+    # one block on the line
+    plain &= np.bincount(line, minlength=line.max() + 1)[line] == 1
+    cut = (motion == 1) & pieces & plain
+    is_arc = (motion == 2) | (motion == 3)
+    arc_cut = is_arc & plain if chord_tol_mm else np.zeros(n, bool)
+    if cut.any() or arc_cut.any():
         sc = _scan(data)
-        raw = np.frombuffer(data, np.uint8)
-        letter = sc["letter"]
-        bad = ~np.isin(letter, np.frombuffer(bytes(_VIA_LETTERS), np.uint8))
-        # G words other than G1 / G01 (a G90, G41 … on the line would be repeated or lost)
-        g = np.flatnonzero(letter == ord("G"))
-        v0, vlen = sc["vstart"][g], sc["vend"][g] - sc["vstart"][g]
-        c0, c1 = raw[np.minimum(v0, raw.size - 1)], raw[np.minimum(v0 + 1, raw.size - 1)]
-        bad[g] = ~(((vlen == 1) & (c0 == ord("1"))) | ((vlen == 2) & (c0 == ord("0")) & (c1 == ord("1"))))
-        bad_line = np.zeros(int(max(line.max(), sc["line"].max() if sc["line"].size else 0)) + 1, bool)
-        bad_line[sc["line"][bad]] = True
+        letter, w_line = sc["letter"], sc["line"]
+        n_lines = int(max(line.max(), w_line.max() if w_line.size else 0)) + 1
+        g = letter == ord("G")
+        gval = np.where(g, _small_int(data, sc["vstart"], sc["vend"]), -1)
+        # lines: only words an inserted line may carry; G words only G1 / G01 (a G90, G41 … on the
+        # line would be repeated or lost)
+        bad = ~np.isin(letter, np.frombuffer(bytes(_VIA_LETTERS), np.uint8)) | (g & (gval != 1))
+        bad_line = np.bincount(w_line[bad], minlength=n_lines) > 0
         cut &= ~bad_line[line]
-    if not cut.any():
+        if arc_cut.any():
+            # arcs: also the arc words, and the line's own G2/G3 (the inserted G1 lines before it
+            # would otherwise change the motion it takes from the line before); a plane word
+            # applies from the arc line on, after the inserted lines, as in the source
+            bad = (~np.isin(letter, np.frombuffer(bytes(_VIA_LETTERS) + b"IJKR", np.uint8))
+                   | (g & ~np.isin(gval, (2, 3, 17, 18, 19))))
+            own_g = np.bincount(w_line[g & np.isin(gval, (2, 3))], minlength=n_lines) > 0
+            arc_cut &= ~(np.bincount(w_line[bad], minlength=n_lines) > 0)[line] & own_g[line]
+    if not (cut.any() or arc_cut.any()):
         return blocks
     idx, q0, q1, _ = split_long(np.arange(n), p0, p1, cut, max_mm, end_mm, corner_mm, corner)
+    motion_out, plane_out = motion[idx], _table_np(blocks, "plane", np.int64)[idx]
+    centre = np.stack([_table_np(blocks, c) for c in ("cx_mm", "cy_mm", "cz_mm")], 1)[idx]
+    r = np.flatnonzero(arc_cut[idx])
+    if r.size:
+        from stages.split import arc_chords
+        a_owner, a0, a1 = arc_chords(q0[r], q1[r], centre[r], plane_out[r], motion_out[r] == 3, chord_tol_mm)
+        k = np.bincount(a_owner, minlength=r.size)
+        rep = np.ones(idx.size, np.int64)
+        rep[r] = k
+        slot = np.repeat(np.arange(idx.size), rep)
+        first = (np.cumsum(rep) - rep)[r]
+        at = first[a_owner] + np.arange(a_owner.size) - np.repeat(np.cumsum(k) - k, k)
+        # the chords before the last are G1 pieces, written (if at all) before the arc's line:
+        # they take the plane the control holds before that line
+        piece = np.zeros(slot.size, bool)
+        piece[at] = True
+        piece[(first + k - 1)] = False
+        prev_plane = np.where(slot > 0, plane_out[np.maximum(slot - 1, 0)], plane_out[slot])
+        idx, q0, q1 = idx[slot], q0[slot], q1[slot]
+        q0[at], q1[at] = a0, a1
+        motion_out, plane_out, centre = motion_out[slot], plane_out[slot], centre[slot]
+        motion_out[piece] = 1
+        plane_out[piece] = prev_plane[piece]
+        centre[piece] = np.nan
     out = blocks.take(pa.array(idx))
     cols = dict(zip(("x0_mm", "y0_mm", "z0_mm", "x1_mm", "y1_mm", "z1_mm"), (*q0.T, *q1.T)))
     cols["block_no"] = np.arange(1, idx.size + 1, dtype=np.int32)
+    cols["motion"], cols["plane"] = motion_out, plane_out
+    for j, c in enumerate(("cx_mm", "cy_mm", "cz_mm")):
+        cols[c] = pa.array(centre[:, j], pa.float64(), mask=np.isnan(centre[:, j]))
     for name, val in cols.items():
         i = out.schema.get_field_index(name)
-        out = out.set_column(i, out.schema.field(name), pa.array(val, out.schema.field(name).type))
+        f = out.schema.field(name)
+        out = out.set_column(i, f, val if isinstance(val, pa.Array) else pa.array(val, f.type))
     return out
+
+
+def _small_int(data: bytes, vstart, vend) -> np.ndarray:
+    """Value of words written as 1–3 plain digits (G1, G01, G17), −1 for any other text."""
+    raw = np.frombuffer(data, np.uint8)
+    vlen = vend - vstart
+    k = np.arange(3)[None, :]
+    ch = raw[np.minimum(vstart[:, None] + k, raw.size - 1)].astype(np.int64) - ord("0")
+    inside = k < vlen[:, None]
+    ok = (vlen >= 1) & (vlen <= 3) & np.all(~inside | ((ch >= 0) & (ch <= 9)), axis=1)
+    val = np.zeros(vstart.size, np.int64)
+    for j in range(3):
+        val = np.where(inside[:, j], val * 10 + ch[:, j], val)
+    return np.where(ok, val, -1)
 
 
 def _via_rows(corrected: pa.Table):
     """Which ``corrected`` rows are via points (a piece of a cut line before its last) and which of
     them are written: those whose line's pieces leave the straight line between the new ends (on
-    the 0.001 mm grid) — all the pieces of such a line, else none."""
+    the 0.001 mm grid) — all the pieces of such a line, else none. The pieces of an arc are
+    written when any of its points (its start included) moves on that grid: the arc's refitted
+    centre is that of its last chord, which is the whole arc only when nothing moved."""
     n = corrected.num_rows
     line = _table_np(corrected, "line_no", np.int64)
     via = np.zeros(n, bool)
@@ -136,6 +195,13 @@ def _via_rows(corrected: pa.Table):
     dev = np.linalg.norm(a + ab * np.clip(t, 0, 1)[:, None] - new, axis=1)
     off = np.zeros(g_first.size, bool)
     np.logical_or.at(off, group, via & (dev > 0.5e-3))
+    arc = np.isin(_table_np(corrected, "motion", np.int64)[g_last], (2, 3))
+    if arc.any():
+        orig = np.stack([_table_np(corrected, c) for c in ("x_mm", "y_mm", "z_mm")], 1)
+        moved = np.linalg.norm(new - orig, axis=1) > 0.5e-3
+        any_moved = np.zeros(g_first.size, bool)
+        np.logical_or.at(any_moved, group, moved)
+        off = np.where(arc, any_moved | (moved[np.maximum(g_first - 1, 0)] & (g_first > 0)), off)
     return via, via & off[group]
 
 

@@ -26,7 +26,8 @@ VERSION = "1"
 INPUTS = ("program_file",)
 OUTPUTS = ("parse_status", "blocks")
 # via points (stages.nc_writer.via_blocks): long G1 lines cut at the split stage's pass length
-PARAMS = ("correct.via_points", "split.max_pass_mm", "split.end_piece_mm", "split.corner_piece_mm")
+PARAMS = ("correct.via_points", "split.max_pass_mm", "split.end_piece_mm", "split.corner_piece_mm",
+          "split.chord_tol_mm")
 
 
 def used_params(params: dict) -> dict:
@@ -523,7 +524,8 @@ def run(inputs: dict, params: dict) -> dict[str, pa.Table]:
             from stages.nc_writer import via_blocks
             blocks = via_blocks(data, blocks, float(params["split"]["max_pass_mm"]),
                                 float(params["split"].get("end_piece_mm", 0.0)),
-                                float(params["split"].get("corner_piece_mm", 0.0)))
+                                float(params["split"].get("corner_piece_mm", 0.0)),
+                                float(params["split"]["chord_tol_mm"]))
     except InputError as e:
         blocks = _empty_blocks()
         status.update(status="failed", message=str(e), n_lines=_count_lines(path))

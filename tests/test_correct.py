@@ -1334,6 +1334,90 @@ def test_via_lines_follow_the_program_style():
     assert reverse_check(out, vb, c)["ok"]
 
 
+_ARC_PROGRAM = b"\n".join([
+    b"%", b"O0013", b"N2 G90 G21 G17", b"N4 T1 M6", b"N6 S1000 M3", b"N8 G0 X-2. Y-10. Z5.",
+    b"N10 G1 Z0. F100",
+    b"N12 G18 G3 X0. Z-2. I0. K-2. F300",        # lead-in arc in XZ, plane word on the line: cut
+    b"N14 G17 G2 X0. Y10. I0. J10.",             # boss contour, two half circles about (0, 0): cut
+    b"N16 G2 Y-10. I0. J-10.",
+    b"N18 X7.071 Y-7.071 R10.",                  # modal G2 (no G word on the line): not cut
+    b"N20 G2 X10. Y0. R10. M8",                  # an M word: not cut
+    b"N22 G1 X12.", b"N24 G0 Z50.", b"M30", b"%", b""])
+
+
+def test_via_points_cut_arcs_into_chords_that_follow_an_error_changing_along_the_arc():
+    """``via_blocks`` with the chord tolerance cuts a plain arc into the split stage's chords (G1
+    pieces, the last chord staying the arc): the passes are those of the uncut program, a program
+    without error comes out byte for byte, and an error that changes around a circle (the sample
+    boss: +35 µm on one side, +7 µm a quarter turn on) is followed where one refitted arc cannot."""
+    tol = SPLIT["split"]["chord_tol_mm"]
+    blocks, _ = parse_program(_ARC_PROGRAM, "a", "p")
+    vb = via_blocks(_ARC_PROGRAM, blocks, 5.0, chord_tol_mm=tol)
+    line = vb.column("line_no").to_numpy()
+    mot = vb.column("motion").to_numpy()
+    a, b = split_blocks(blocks, SPLIT), split_blocks(vb, SPLIT)
+    # chords of r: 2 r acos(1 − tol / r) per chord; the half circles r 10 → 50 chords each (brute
+    # force: ceil(π / (2 acos(1 − 0.001 / 10)))), the lead-in quarter of r 2 → 12
+    n_half = int(np.ceil(np.pi / (2 * np.arccos(1 - tol / 10.0))))
+    n_lead = int(np.ceil(np.pi / 2 / (2 * np.arccos(1 - tol / 2.0))))
+    assert [int((line == k).sum()) for k in (8, 9, 10, 11, 12)] == [n_lead, n_half, n_half, 1, 1]
+    # pieces are G1 but the last, which keeps the arc and its centre
+    for k, m in ((8, 3), (9, 2), (10, 2)):
+        assert list(mot[line == k]) == [1] * (int((line == k).sum()) - 1) + [m]
+    # the lead-in's pieces take the plane held before its line (G17), its arc keeps G18
+    assert list(vb.column("plane").to_numpy()[line == 8][[0, -1]]) == [17, 18]
+    assert a.num_rows == b.num_rows
+    for c in ("x0_mm", "y0_mm", "z0_mm", "x1_mm", "y1_mm", "z1_mm", "line_no"):
+        assert np.allclose(a.column(c).to_numpy(), b.column(c).to_numpy(), atol=1e-12), c
+    # no error: byte for byte
+    cut = b.column("motion").to_numpy() != 0
+    bl = b.column("line_no").to_numpy()
+    on = cut & np.isin(bl, (9, 10))
+    none = _errors(b, np.zeros(b.num_rows), np.tile([0, 0, 1.0], (b.num_rows, 1))).filter(pa.array(on)).slice(0, 0)
+    assert write_program(_ARC_PROGRAM, vb, correct_once(vb, b, none, {"correct": {}})) == _ARC_PROGRAM
+
+    # material left e(θ) = 20 + 15 cos 2θ µm around the boss, along the outward normal (a cos θ
+    # term would be a shifted circle, which a refitted arc follows): the tool goes in by e, so the
+    # corrected contour is r = 10 − e(θ) / 1000 (closed form)
+    def target(theta):
+        return 20.0 + 15.0 * np.cos(2 * theta)
+
+    mid = 0.5 * (np.stack([b.column(c).to_numpy() for c in ("x0_mm", "y0_mm")], 1)
+                 + np.stack([b.column(c).to_numpy() for c in ("x1_mm", "y1_mm")], 1))
+    th = np.arctan2(mid[:, 1], mid[:, 0])
+    nrm = np.stack([np.cos(th), np.sin(th), np.zeros_like(th)], 1)
+    err = _errors(b, target(th), nrm).filter(pa.array(on))
+
+    def radius_error(text):
+        """Largest |r − (10 − e(θ)/1000)| (µm) over the pass ends of the written full circle (at
+        Z−2, before line N18)."""
+        blk, _ = parse_program(text, "c", "p")
+        pts = split_blocks(blk, SPLIT)
+        n18 = [i for i, t in enumerate(text.split(b"\n")) if t.startswith(b"N18")][0] + 1
+        p = np.stack([pts.column(c).to_numpy() for c in ("x1_mm", "y1_mm", "z1_mm")], 1)
+        r = np.hypot(p[:, 0], p[:, 1])
+        keep = (pts.column("line_no").to_numpy() < n18) & (np.abs(p[:, 2] + 2.0) < 0.01) & (np.abs(r - 10) < 0.5)
+        t = np.arctan2(p[keep, 1], p[keep, 0])
+        return np.abs(r[keep] - (10.0 - target(t) / 1000.0)).max() * 1000.0
+
+    c = correct_once(vb, b, err, {"correct": {}})
+    out = write_program(_ARC_PROGRAM, vb, c)
+    assert reverse_check(out, vb, c)["ok"]
+    dev = radius_error(out)
+    # the chord points follow e(θ) to within the written grid (0.5 µm) and what one error per
+    # 0.56 mm chord leaves (0.49 µm measured)
+    assert dev < 1.0
+    # lines N18, N20 (not cut) are still single arcs; the M8 line is untouched
+    assert out.count(b"N18 ") == 1 and out.count(b"N20 ") == 1
+    assert b" M8" in out.split(b"N20")[1].split(b"\n")[0]
+    # without the arcs cut: each half circle is refitted through its moved ends (5 µm in at ±90°),
+    # its centre shifted along their bisector to fit the chord points: the best circle of that
+    # family misses e(θ) by 5.2 µm: the reason for the chords
+    c1 = correct_once(blocks, a, _errors(a, target(th), nrm).filter(pa.array(on)), {"correct": {}})
+    dev1 = radius_error(write_program(_ARC_PROGRAM, blocks, c1))
+    assert dev1 > 5.0
+
+
 # ------------------------------------------------------------------------------------ corners
 
 def test_end_pieces_cut_long_lines_the_same_in_via_blocks_and_passes():
