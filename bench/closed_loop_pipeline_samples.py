@@ -17,12 +17,15 @@ walls and the boss, where the error is):
    rigid machine (cusps and feed marks, which no path correction removes, are not counted).
 
     python3 bench/closed_loop_pipeline_samples.py [--out DIR] [--keep] [--prune DEG] [--max-move UM]
-        [--correct KEY=VALUE ...] [--set SECTION.KEY=VALUE ...] [X0 X1 Y0 Y1 ...]
+        [--correct KEY=VALUE ...] [--set SECTION.KEY=VALUE ...] [--program NC] [--workflow YAML] [X0 X1 Y0 Y1 ...]
     python3 bench/closed_loop_pipeline_samples.py --whole [--out DIR] [--prune DEG] [--workers 2] [--spacing MM]
         [--rounds 1] (one round of the pipeline 16–21 min on 2 workers at prune 0; the virtual machine
         13–70 min per program on one core, 43,326 probe points at 0.1 mm; the programs not in its
         cache are machined side by side, one process a core)
 
+``--program`` and ``--workflow`` run another program with another workflow (default the finishing
+program with ``workflows/mould.yaml``; e.g. ``--whole --program data_samples/nc/mould_contour_t1.nc``,
+or ``--whole --program data_samples/gap/gap_t1.nc --workflow workflows/gap.yaml``).
 ``--rounds`` lists the round counts to run (default 1 and 3). The virtual machine cuts every program
 as passes of the workflow's chord tolerance, pass length and merge length only (:data:`VM_SPLIT`:
 the end and corner pieces of ``--set split.…`` change what the pipeline predicts, not the machine).
@@ -103,7 +106,7 @@ def workflow(root: Path, max_iter: int, prune_deg=None, max_move_um=None, correc
         wf.pop(k, None)
     # one output (cache) for both runs: the three-round run takes round 1 from the cache
     wf.update({"name": "band", "programs": "nc/*.nc", "output": "out"})
-    wf["correct"] = {**wf["correct"], "max_iter": max_iter}
+    wf["correct"] = {**wf.get("correct", {}), "max_iter": max_iter}
     if max_move_um is not None:
         wf["correct"]["max_move_um"] = float(max_move_um)
     for kv in correct_opts:                      # e.g. deflection_vector=true, relax=0.5

@@ -163,9 +163,10 @@ class Correct(_Strict):
     # error along the normals (False: everything along the normals, seed 000 para 0084). Off: on
     # the sample's boss foot its rounds do not contract (stages/correct.py)
     deflection_vector: bool = False
-    # cut long straight cuts at the split stage's pass ends and write the moved ends as inserted
-    # G1 lines (stages.nc_writer.via_blocks): the passes of one long cut can be corrected apart.
-    # Off by default: the corrected program then differs from the source by more than coordinates
+    # cut long straight cuts at the split stage's pass ends, and plain arcs at their chords, and
+    # write the moved ends as inserted G1 lines (stages.nc_writer.via_blocks): the passes of one
+    # long cut or arc can be corrected apart. Off by default: the corrected program then differs
+    # from the source by more than coordinates
     via_points: bool = False
 
 

@@ -27,7 +27,9 @@ moved piece ends as ``G1 X Y Z`` lines inserted before the block's own line, onl
 the straight line between the written ends by more than the output grid, so a program without
 error still comes out byte-identical. Only absolute metric G1 lines with no words but N, G1, X, Y,
 Z and F are cut (an inserted line must not repeat an M, S, T or G code, and an F word moves onto
-the first inserted line).
+the first inserted line). Given the chord tolerance, plain arcs are cut too, at the split stage's
+chords: the chords before the last become G1 pieces, the last stays the arc (its centre); they are
+written whenever a point of the arc moves, since the correct stage refits only that last chord's arc.
 """
 from __future__ import annotations
 
