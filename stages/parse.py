@@ -25,7 +25,8 @@ NAME = "parse"
 VERSION = "1"
 INPUTS = ("program_file",)
 OUTPUTS = ("parse_status", "blocks")
-# via points (stages.nc_writer.via_blocks): long G1 lines cut at the split stage's pass length
+# via points (stages.nc_writer.via_blocks): long G1 lines cut at the split stage's pass length,
+# plain arcs at its chords
 PARAMS = ("correct.via_points", "split.max_pass_mm", "split.end_piece_mm", "split.corner_piece_mm",
           "split.chord_tol_mm")
 
