@@ -62,13 +62,13 @@ WINDOWS = ((22.0, 32.0, 41.0, 45.0), (68.0, 78.0, 41.0, 45.0), (54.0, 62.0, 53.0
 MARGIN_MM = 6.0          # passes machined on the VM: within this of the window (they shape its surface)
 
 
-def window_program(src: bytes, x0: float, x1: float, y0: float, y1: float) -> bytes:
+def window_program(src: bytes, x0: float, x1: float, y0: float, y1: float, name: str = PROGRAM.name) -> bytes:
     """The raster rows of the program with Y in [y0, y1], each cut to its moves with X in [x0, x1],
     as a program of their own: the sample's header, then per row a retract, a rapid to the row
     piece's start, a plunge at the row's feed and the row's lines verbatim."""
     from stages.parse import parse_program
     lines = src.decode().splitlines()
-    blocks, _ = parse_program(src, PROGRAM.name, "window")
+    blocks, _ = parse_program(src, name, "window")
     col = lambda c: blocks.column(c).to_numpy(zero_copy_only=False)  # noqa: E731
     line_no, mot = col("line_no"), col("motion")
     xa, xb, ya, yb, za = col("x0_mm"), col("x1_mm"), col("y0_mm"), col("y1_mm"), col("z0_mm")
@@ -81,7 +81,7 @@ def window_program(src: bytes, x0: float, x1: float, y0: float, y1: float) -> by
     starts = idx[np.concatenate([[True], np.diff(idx) > 1])]
     ends = idx[np.concatenate([np.diff(idx) > 1, [True]])]
     out = lines[:int(line_no[0]) - 1]                       # %, O-number, comments, G90…, T, S
-    out.append(f"(WINDOW X{x0:g}-{x1:g} Y{y0:g}-{y1:g} OF {PROGRAM.name}: {len(starts)} ROW PIECES)")
+    out.append(f"(WINDOW X{x0:g}-{x1:g} Y{y0:g}-{y1:g} OF {name}: {len(starts)} ROW PIECES)")
     for s_, e_ in zip(starts, ends):
         out += ["G0 Z25.000", f"X{xa[s_]:.3f} Y{ya[s_]:.3f}", f"Z{za[s_] + 2:.3f}",
                 f"G1 Z{za[s_]:.3f} F{col('feed_mm_min')[s_]:g}"]
@@ -319,7 +319,8 @@ def main():
         if not args.keep:
             shutil.rmtree(root / "out", ignore_errors=True)
         (root / "nc").mkdir(parents=True, exist_ok=True)
-        band = src if args.whole else window_program(src, w[0] - MARGIN_MM, w[1] + MARGIN_MM, w[2] - 1.0, w[3] + 1.0)
+        band = src if args.whole else window_program(src, w[0] - MARGIN_MM, w[1] + MARGIN_MM, w[2] - 1.0, w[3] + 1.0,
+                                                      args.program.name)
         (root / "nc" / "band.nc").write_bytes(band)
         written, wall = {"original": band}, {}
         for mi in sorted(int(r) for r in args.rounds.split(",")):
