@@ -1356,8 +1356,8 @@ def test_via_points_cut_arcs_into_chords_that_follow_an_error_changing_along_the
     line = vb.column("line_no").to_numpy()
     mot = vb.column("motion").to_numpy()
     a, b = split_blocks(blocks, SPLIT), split_blocks(vb, SPLIT)
-    # chords of r: 2 r acos(1 − tol / r) per chord; the half circles r 10 → 50 chords each (brute
-    # force: ceil(π / (2 acos(1 − 0.001 / 10)))), the lead-in quarter of r 2 → 12
+    # a chord spans at most 2 acos(1 − tol / r) of sweep (its sagitta ≤ tol): the half circles of
+    # r 10 → ceil(π / 2 acos(1 − 0.0001)) = 112 chords each, the lead-in quarter of r 2 → 25
     n_half = int(np.ceil(np.pi / (2 * np.arccos(1 - tol / 10.0))))
     n_lead = int(np.ceil(np.pi / 2 / (2 * np.arccos(1 - tol / 2.0))))
     assert [int((line == k).sum()) for k in (8, 9, 10, 11, 12)] == [n_lead, n_half, n_half, 1, 1]
@@ -1405,7 +1405,7 @@ def test_via_points_cut_arcs_into_chords_that_follow_an_error_changing_along_the
     assert reverse_check(out, vb, c)["ok"]
     dev = radius_error(out)
     # the chord points follow e(θ) to within the written grid (0.5 µm) and what one error per
-    # 0.56 mm chord leaves (0.49 µm measured)
+    # 0.28 mm chord leaves (0.49 µm measured)
     assert dev < 1.0
     # lines N18, N20 (not cut) are still single arcs; the M8 line is untouched
     assert out.count(b"N18 ") == 1 and out.count(b"N20 ") == 1
