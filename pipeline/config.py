@@ -168,6 +168,13 @@ class Correct(_Strict):
     # long cut or arc can be corrected apart. Off by default: the corrected program then differs
     # from the source by more than coordinates
     via_points: bool = False
+    # with via_points: a G1 line meeting another at a path corner (a turn over 30°) gets a via point
+    # this far from the corner inside its pass (0: none; stages.nc_writer.via_blocks). The corner
+    # vertex moves for both passes, and the line's body does not follow the other pass's move: on
+    # the sample a wall climb's corner vertex moved 289 µm towards the other wall for the row
+    # along it, which dragged the climb's body into that wall's rest material and more than
+    # doubled its deflection on the virtual machine (−72 → −166 µm)
+    corner_via_mm: float = Field(0.0, ge=0)
 
 
 class Measurements(_Strict):

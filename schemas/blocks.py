@@ -26,4 +26,7 @@ SCHEMA = pa.schema([
     pa.field("inch", pa.bool_(), nullable=False),        # block was written in G20 (values converted)
     pa.field("incremental", pa.bool_(), nullable=False), # block was written in G91
     pa.field("dwell_s", pa.float64(), nullable=False),   # G4 blocks (motion 4): dwell time
+    # the block's end is a via point inside a pass (correct.corner_via_mm): a cut of its line that
+    # the split stage does not make, so the blocks on either side are one pass
+    pa.field("via_only", pa.bool_(), nullable=False),
 ])

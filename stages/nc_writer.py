@@ -55,7 +55,8 @@ _VIA_LETTERS = frozenset(b"NGXYZF")
 
 
 def via_blocks(data: bytes, blocks: pa.Table, max_mm: float, end_mm: float = 0.0,
-               corner_mm: float = 0.0, chord_tol_mm: float | None = None) -> pa.Table:
+               corner_mm: float = 0.0, chord_tol_mm: float | None = None,
+               corner_via_mm: float = 0.0) -> pa.Table:
     """``blocks`` with every long plain G1 line cut into the split stage's equal pieces, and with
     ``chord_tol_mm`` every plain arc into the split stage's chords.
 
@@ -73,6 +74,11 @@ def via_blocks(data: bytes, blocks: pa.Table, max_mm: float, end_mm: float = 0.0
         18, 19) of two or more chords becomes its chords as G1 pieces, the last chord staying the
         arc (same centre): one arc refitted through its moved ends cannot follow an error that
         changes along it (the sample boss's contour: +35 µm on one side, +7 µm a quarter turn on)
+    corner_via_mm : ``correct.corner_via_mm``: a line's piece at a path corner (a G1 line meeting
+        another, :func:`stages.split.corner_ends`) at least twice this long is cut this far from
+        the corner, and the cut is marked ``via_only``: the split stage keeps the two blocks one
+        pass, so the passes do not change, but the corner vertex's move (for both passes) no
+        longer drags the piece's body with it
 
     Returns
     -------
@@ -91,6 +97,9 @@ def via_blocks(data: bytes, blocks: pa.Table, max_mm: float, end_mm: float = 0.0
     k = np.ceil(length / max_mm - 1e-9).astype(np.int64)
     corner = corner_ends(p0, p1, motion == 1) if corner_mm > 0 else None
     pieces = k > 1
+    if corner_via_mm > 0:                        # the lines that get a via point at a corner
+        cv_start, cv_end = corner_ends(p0, p1, motion == 1)
+        pieces |= (cv_start | cv_end) & (length >= 2 * corner_via_mm * (1 - 1e-9))
     if corner is not None:                       # the lines split_long gives a corner piece
         pieces |= (corner[0] | corner[1]) & (length - corner_mm * (corner[0].astype(float) + corner[1])
                                              >= corner_mm * (1 - 1e-9))
@@ -122,6 +131,9 @@ def via_blocks(data: bytes, blocks: pa.Table, max_mm: float, end_mm: float = 0.0
     if not (cut.any() or arc_cut.any()):
         return blocks
     idx, q0, q1, _ = split_long(np.arange(n), p0, p1, cut, max_mm, end_mm, corner_mm, corner)
+    via_only = np.zeros(idx.size, bool)
+    if corner_via_mm > 0 and cut.any():
+        idx, q0, q1, via_only = _corner_vias(idx, q0, q1, cut & cv_start, cut & cv_end, corner_via_mm)
     motion_out, plane_out = motion[idx], _table_np(blocks, "plane", np.int64)[idx]
     centre = np.stack([_table_np(blocks, c) for c in ("cx_mm", "cy_mm", "cz_mm")], 1)[idx]
     r = np.flatnonzero(arc_cut[idx])
@@ -140,7 +152,7 @@ def via_blocks(data: bytes, blocks: pa.Table, max_mm: float, end_mm: float = 0.0
         piece[at] = True
         piece[(first + k - 1)] = False
         prev_plane = np.where(slot > 0, plane_out[np.maximum(slot - 1, 0)], plane_out[slot])
-        idx, q0, q1 = idx[slot], q0[slot], q1[slot]
+        idx, q0, q1, via_only = idx[slot], q0[slot], q1[slot], via_only[slot]
         q0[at], q1[at] = a0, a1
         motion_out, plane_out, centre = motion_out[slot], plane_out[slot], centre[slot]
         motion_out[piece] = 1
@@ -150,6 +162,8 @@ def via_blocks(data: bytes, blocks: pa.Table, max_mm: float, end_mm: float = 0.0
     cols = dict(zip(("x0_mm", "y0_mm", "z0_mm", "x1_mm", "y1_mm", "z1_mm"), (*q0.T, *q1.T)))
     cols["block_no"] = np.arange(1, idx.size + 1, dtype=np.int32)
     cols["motion"], cols["plane"] = motion_out, plane_out
+    if "via_only" in out.column_names:
+        cols["via_only"] = via_only
     for j, c in enumerate(("cx_mm", "cy_mm", "cz_mm")):
         cols[c] = pa.array(centre[:, j], pa.float64(), mask=np.isnan(centre[:, j]))
     for name, val in cols.items():
@@ -157,6 +171,35 @@ def via_blocks(data: bytes, blocks: pa.Table, max_mm: float, end_mm: float = 0.0
         f = out.schema.field(name)
         out = out.set_column(i, f, val if isinstance(val, pa.Array) else pa.array(val, f.type))
     return out
+
+
+def _corner_vias(idx, q0, q1, at_start, at_end, d):
+    """Cut the first piece of a line starting at a corner (``at_start`` per line) and the last
+    piece of one ending at a corner ``d`` from the corner, where the piece is long enough (2d,
+    3d with both). Returns (idx, q0, q1, via_only): ``via_only`` marks the pieces whose end is
+    such a cut."""
+    new_line = np.concatenate(([True], idx[1:] != idx[:-1]))
+    last = np.concatenate((idx[1:] != idx[:-1], [True]))
+    seg = q1 - q0
+    plen = np.linalg.norm(seg, axis=1)
+    cs = new_line & at_start[idx]
+    ce = last & at_end[idx]
+    fits = plen >= d * (1 + cs + ce) * (1 - 1e-9)
+    cs, ce = cs & fits, ce & fits
+    rep = 1 + cs.astype(np.int64) + ce
+    src = np.repeat(np.arange(idx.size), rep)
+    j = np.arange(src.size) - np.repeat(np.cumsum(rep) - rep, rep)
+    # distances of the cuts from the piece's start: [0, d (start corner), L − d (end corner), L]
+    cuts = np.zeros((idx.size, 4))
+    cuts[:, 1] = np.where(cs, d, plen)
+    cuts[:, 2] = np.where(ce, plen - d, plen)
+    cuts[:, 3] = plen
+    # the k-th boundary of a piece: its distinct cut distances in order
+    bounds = np.sort(np.where(np.arange(4)[None, :] <= rep[:, None], cuts, np.inf), axis=1)
+    u = seg / np.where(plen > 0, plen, 1.0)[:, None]
+    a = q0[src] + u[src] * bounds[src, j][:, None]
+    b = np.where((j + 1 == rep[src])[:, None], q1[src], q0[src] + u[src] * bounds[src, j + 1][:, None])
+    return idx[src], a, b, j + 1 < rep[src]
 
 
 def _small_int(data: bytes, vstart, vend) -> np.ndarray:

@@ -22,13 +22,13 @@ import pyarrow as pa
 from stages import InputError
 
 NAME = "parse"
-VERSION = "1"
+VERSION = "2"
 INPUTS = ("program_file",)
 OUTPUTS = ("parse_status", "blocks")
 # via points (stages.nc_writer.via_blocks): long G1 lines cut at the split stage's pass length,
 # plain arcs at its chords
-PARAMS = ("correct.via_points", "split.max_pass_mm", "split.end_piece_mm", "split.corner_piece_mm",
-          "split.chord_tol_mm")
+PARAMS = ("correct.via_points", "correct.corner_via_mm", "split.max_pass_mm", "split.end_piece_mm",
+          "split.corner_piece_mm", "split.chord_tol_mm")
 
 
 def used_params(params: dict) -> dict:
@@ -435,6 +435,7 @@ def parse_program(data: bytes, path: str, program_id: str) -> tuple[pa.Table, di
         "inch": inch[line_idx],
         "incremental": incremental[line_idx],
         "dwell_s": dwell_s,
+        "via_only": np.zeros(line_idx.size, bool),
     })
     summary = {"n_lines": n_lines, "n_blocks": n_blocks,
                "tool": int(tools_cutting[0]) if tools_cutting.size else None}
@@ -526,7 +527,8 @@ def run(inputs: dict, params: dict) -> dict[str, pa.Table]:
             blocks = via_blocks(data, blocks, float(params["split"]["max_pass_mm"]),
                                 float(params["split"].get("end_piece_mm", 0.0)),
                                 float(params["split"].get("corner_piece_mm", 0.0)),
-                                float(params["split"]["chord_tol_mm"]))
+                                float(params["split"]["chord_tol_mm"]),
+                                float(params["correct"].get("corner_via_mm") or 0.0))
     except InputError as e:
         blocks = _empty_blocks()
         status.update(status="failed", message=str(e), n_lines=_count_lines(path))

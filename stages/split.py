@@ -29,7 +29,7 @@ import pyarrow as pa
 from stages.parse import ARC_CCW, ARC_CW, DWELL, RAPID, _PLANE_AXES
 
 NAME = "split"
-VERSION = "1"
+VERSION = "2"
 INPUTS = ("parse_status", "blocks")
 OUTPUTS = ("passes", "programs")
 PARAMS = ("split", "machine.rapid_mm_min", "tool")
@@ -256,10 +256,22 @@ def split_blocks(blocks: pa.Table, params: dict) -> pa.Table:
         (motion[owner][1:] != RAPID) & (motion[owner][:-1] != RAPID))
     same_kind[1:] &= seg_feed[1:] == seg_feed[:-1]
     # the pieces of a cut line stay passes of their own (an end piece is short on purpose)
-    mergeable = (motion[owner] != RAPID) & same_kind & ~piece
+    via_only = (b["via_only"].astype(bool) if "via_only" in b else np.zeros(motion.size, bool)) & (motion == 1)
+    via_side = via_only.copy()                   # the blocks on either side of a via-only cut
+    via_side[1:] |= via_only[:-1]
+    mergeable = (motion[owner] != RAPID) & same_kind & ~piece & ~via_side[owner]
     if owner.size:
-        mergeable[0] = (motion[owner[0]] != RAPID) & ~piece[0]
+        mergeable[0] = (motion[owner[0]] != RAPID) & ~piece[0] & ~via_side[owner[0]]
     first, last = _merge_short(owner, p0, p1, mergeable, sp["merge_max_mm"], sp["chord_tol_mm"])
+    if via_only.any():
+        # a via-only cut (correct.corner_via_mm) is a vertex inside a pass: the passes it separates
+        # are one (the passes stay those of the uncut program)
+        join = np.zeros(first.size, bool)
+        join[1:] = (via_only[owner[last[:-1]]] & (owner[last[:-1]] != owner[first[1:]])
+                    & (motion[owner[first[1:]]] == 1) & same_kind[first[1:]])
+        keep = ~join
+        last = np.concatenate((last[np.flatnonzero(keep)[1:] - 1], last[-1:]))
+        first = first[keep]
 
     q0, q1 = p0[first], p1[last]
     own0, own1 = owner[first], owner[last]

@@ -1570,6 +1570,71 @@ def test_pocket_corner_vertex_holds_and_the_via_points_beside_it_carry_the_walls
     np.testing.assert_allclose(via_y, [88.0, 0, 0], atol=1e-6)
 
 
+def test_corner_via_points_keep_the_passes_and_carry_each_line_s_own_move_beside_the_corner():
+    """``correct.corner_via_mm``: a line at a path corner gets a via point 0.5 mm from the corner
+    inside its pass (lengths by hand on the corner program: a 1.13 mm line between two corners is
+    too short for two); the split stage joins the blocks on either side, so the passes are those of
+    the uncut program; at the pocket corner (walls +y 200 µm, −x 88 µm left) the corner vertex
+    realises both walls, (+88, −200) µm, and the via points the walls' own moves, (0, −200) and
+    (+88, 0), so neither line's body is dragged towards the other wall; no error gives the source
+    byte for byte, the written via lines reverse-check."""
+    blocks, _ = parse_program(_CORNER_PROGRAM, "c", "p")
+    vb = via_blocks(_CORNER_PROGRAM, blocks, 5.0, corner_via_mm=0.5)
+    line, via = vb.column("line_no").to_numpy(), vb.column("via_only").to_numpy()
+    length = np.linalg.norm(_xyz_of(vb, 1) - _xyz_of(vb, 0), axis=1)
+    expect = {7: ([4.5, 0.5], [True, False]), 8: ([0.5, 4.5, 4.5, 0.5], [True, False, True, False]),
+              9: ([0.5, 4.5, 4.5, 0.5], [True, False, True, False]), 10: ([np.sqrt(1.28)], [False]),
+              11: ([0.5, 2.5], [True, False]), 12: ([np.sqrt(10.0)], [False])}
+    for k, (v, w) in expect.items():
+        np.testing.assert_allclose(length[line == k], v, atol=1e-12, err_msg=f"line {k}")
+        if w:
+            assert via[line == k].tolist() == w, k
+    plain = split_blocks(blocks, SPLIT)
+    joined = split_blocks(vb, SPLIT)
+    assert joined.num_rows == plain.num_rows
+    for c in ("x0_mm", "y0_mm", "z0_mm", "x1_mm", "y1_mm", "z1_mm", "motion", "line_no", "t_end_s"):
+        np.testing.assert_allclose(joined.column(c).to_numpy(), plain.column(c).to_numpy(), atol=1e-12, err_msg=c)
+    none = correct_once(vb, joined, _errors(joined, np.zeros(joined.num_rows), np.zeros((joined.num_rows, 3))).slice(0, 0),
+                        {"correct": {}})
+    assert write_program(_CORNER_PROGRAM, vb, none) == _CORNER_PROGRAM
+
+    # a wall climbed down to the foot of the next wall (the sample's pocket corner): the descent
+    # finishes the wall with normal −x (88 µm left), the row along −x the wall with normal −y
+    # (200 µm left); the corner's move for the row, +y, lies across the descent's path
+    text = b"\n".join([b"%", b"O0001", b"G90 G17 G21", b"T1 M6", b"S8000 M3", b"G0 X0. Y0. Z10.",
+                       b"G1 Z0. F500", b"X-20.", b"G0 Z50.", b"M30", b"%", b""])
+    blocks, _ = parse_program(text, "corner.nc", "p")
+    vb = via_blocks(text, blocks, 5.0, corner_via_mm=0.5)
+    passes = split_blocks(vb, SPLIT)
+    assert passes.num_rows == split_blocks(blocks, SPLIT).num_rows
+    p0, p1 = _xyz_of(passes, 0), _xyz_of(passes, 1)
+    down = (p1[:, 2] < p0[:, 2]) & (passes.column("motion").to_numpy() == 1)
+    row = p1[:, 0] < p0[:, 0]
+    normals = np.where(down[:, None], [-1.0, 0, 0], [0, -1.0, 0])
+    errors = _errors(passes, np.where(down, 88.0, 200.0), normals).filter(pa.array(down | row))
+
+    def moved(v):
+        c = correct_once(v, split_blocks(v, SPLIT), errors, {"correct": {"max_move_um": 300.0}})
+        xyz = np.stack([c.column(k).to_numpy() for k in ("x_mm", "y_mm", "z_mm")], 1)
+        new = np.stack([c.column(k).to_numpy() for k in ("x_new_mm", "y_new_mm", "z_new_mm")], 1)
+        return c, {tuple(np.round(p, 6)): (n - p) * 1000.0 for p, n in zip(xyz, new)}
+
+    c, at = moved(vb)
+    np.testing.assert_allclose(at[(0.0, 0.0, 0.0)], [88.0, 200.0, 0], atol=1e-6)
+    np.testing.assert_allclose(at[(0.0, 0.0, 0.5)], [88.0, 0, 0], atol=1e-6)
+    np.testing.assert_allclose(at[(-0.5, 0.0, 0.0)], [0, 200.0, 0], atol=1e-6)
+    np.testing.assert_allclose(at[(0.0, 0.0, 5.0)], [88.0, 0, 0], atol=1e-6)
+    # without the via point the descent's last 5 mm runs from (88, 0) to (88, 200) µm: its middle
+    # 100 µm into the other wall
+    _, at_plain = moved(via_blocks(text, blocks, 5.0))
+    assert (0.0, 0.0, 0.5) not in at_plain
+    np.testing.assert_allclose(at_plain[(0.0, 0.0, 0.0)], [88.0, 200.0, 0], atol=1e-6)
+    out = write_program(text, vb, c)
+    assert b"G1 X0.088 Y0.000 Z5.000" in out and b"G1 X0.088 Y0.000 Z0.500" in out
+    rep = reverse_check(out, vb, c)
+    assert rep["ok"], rep["message"]
+
+
 def test_corner_fans_are_the_ball_points_of_the_normals_between():
     """The fan of a floor-wall corner (normals +z and −x) for a Ø10 ball with its tip at (1, 2, 3):
     the point of normal n is the centre − 5 n (closed form), 9 steps of 10° from the floor's end
