@@ -12,6 +12,9 @@ Here:
   rest is at least as long: the passes beside a corner are predicted apart from the line's body
   (the tooth passages of the other line at the corner finish the surface there, see
   ``passage_envelope``) and, with ``correct.via_points``, corrected apart;
+- blocks whose end is a via point inside a pass (``via_only``: ``correct.corner_via_mm``, a cut
+  the parse stage makes beside a path corner) are joined with the next block into one pass, so the
+  passes are those of the uncut program;
 - runs of short consecutive cutting moves are merged into passes no longer than
   ``split.merge_max_mm``, but only where every merged vertex stays within ``chord_tol_mm`` of the
   merged pass, so merging never moves the path by more than the chord tolerance;
