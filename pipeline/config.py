@@ -157,6 +157,11 @@ class Correct(_Strict):
     # whole sample program did worse (57.3 against 37.2 % after three rounds, with via points and
     # 0.5 mm end pieces)
     hold_corners: bool = False
+    # the gouge limit guards the fans of surface the tool finishes standing at corner vertices
+    # (stages.correct.corner_fans: a wall's foot rounded by the ball) against the vertices beside
+    # them (a slope pass ending 0.1 mm before the foot, moved 0.2 mm towards it), without holding
+    # the corners themselves (their own moves cut their fans)
+    guard_fans: bool = False
     ln_normals: bool = False                 # also write Heidenhain-style LN blocks with normals
     comp_table: bool = False                 # also write a contact-angle compensation table
     # undo the tool deflection as a vector (−δ; its tangential part shifts cusps), the rest of the

@@ -99,12 +99,12 @@ OUTPUTS = ("corrected",)
 # every cached round
 PARAMS = ("correct.max_move_um", "correct.relax", "correct.accelerate", "correct.deflection_vector",
           "correct.gouge_limit", "correct.gouge_lines", "correct.refine_across_path",
-          "correct.hold_corners", "tool")
+          "correct.hold_corners", "correct.guard_fans", "tool")
 
 DEFAULTS = {"max_move_um": 50.0, "tol_um": 0.1, "max_iter": 5, "relax": 1.0, "ln_normals": False,
             "comp_table": False, "deflection_vector": False, "accelerate": False,
             "gouge_limit": True, "gouge_lines": False, "refine_across_path": False,
-            "hold_corners": False}
+            "hold_corners": False, "guard_fans": False}
 _PLANE_AXES = {17: (0, 1, 2), 18: (2, 0, 1), 19: (1, 2, 0)}  # as stages.parse: (first, second, normal)
 _EPS_UM = 1e-9
 # normals of the two passes at a vertex closer than this are one normal for the least-squares
@@ -348,7 +348,8 @@ def corner_fans(tips, own_normals, corner, shape, step_deg=CORNER_FAN_STEP_DEG):
     return tips[rows][which] + shape.point(q, phi), n, which
 
 
-def gouge_limit(total_um, tips, own, own_normals, gen_xyz, gen_normals, gen_pass, shape, sweeps=3):
+def gouge_limit(total_um, tips, own, own_normals, gen_xyz, gen_normals, gen_pass, shape, sweeps=3,
+                fan_free=None):
     """Limit vertex moves so the tool does not cut into the surface other passes generate.
 
     A vertex is moved for the errors of its own two passes; the tool at the moved vertex must not
@@ -372,6 +373,8 @@ def gouge_limit(total_um, tips, own, own_normals, gen_xyz, gen_normals, gen_pass
     gen_xyz, gen_normals : (g, 3) float, generating points (mm) and their unit normals
     gen_pass : (g,) int, pass index of each generating point
     shape : :class:`stages.geometry.ToolShape`
+    fan_free : (v,) bool, optional: vertices the points of corner fans (``gen_pass`` < −1,
+        :func:`corner_fans`) do not limit
 
     Returns
     -------
@@ -394,6 +397,8 @@ def gouge_limit(total_um, tips, own, own_normals, gen_xyz, gen_normals, gen_pass
         d0, u = shape.clearance(gen_xyz[j] - tips[i])
         keep = (d0 < size[i] / 1000.0) & (d0 >= -GOUGE_INSIDE_MM) & np.isfinite(u).all(axis=1)
         keep &= (gen_pass[j] != own[i, 0]) & (gen_pass[j] != own[i, 1])
+        if fan_free is not None:
+            keep &= ~(fan_free[i] & (gen_pass[j] < -1))
         i, j, d0, u = i[keep], j[keep], d0[keep], u[keep]
         same = np.einsum("pj,pkj->pk", gen_normals[j], own_normals[i]).max(axis=1) > cos_same
         i, u, limit = i[~same], u[~same], np.maximum(d0[~same], 0.0) * 1000.0
@@ -730,10 +735,11 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
         total_um[stale] = (last[stale] - orig[stale]) * 1000.0
     gouge_um = np.zeros(nb)
     corner = np.zeros(nb, bool)
-    if n_pass and p["hold_corners"]:
+    if n_pass and (p["hold_corners"] or p["guard_fans"]):
         held, corner = corner_limit(total_um, own_normals)
-        gouge_um += np.linalg.norm(held - total_um, axis=1)
-        total_um = held
+        if p["hold_corners"]:
+            gouge_um += np.linalg.norm(held - total_um, axis=1)
+            total_um = held
     if n_pass and generating is not None and tool_shape is not None:
         gen_xyz, gen_n, gen_pass = _generating_points(generating, passes)
         if p["gouge_lines"]:
@@ -744,7 +750,8 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
             gen_xyz, gen_n = np.vstack([gen_xyz, fan_xyz]), np.vstack([gen_n, fan_n])
             gen_pass = np.concatenate([gen_pass, -2 - fan_k])
         total_um, taken = gouge_limit(total_um, orig - frame, own, own_normals, gen_xyz, gen_n,
-                                      gen_pass, tool_shape)
+                                      gen_pass, tool_shape,
+                                      fan_free=None if p["hold_corners"] else corner)
         gouge_um += taken
     size = np.linalg.norm(total_um, axis=1)
     clipped = size > max_move * (1 + 1e-12)

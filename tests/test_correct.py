@@ -792,7 +792,7 @@ def test_stage_run_matches_schema():
     assert correct.OUTPUTS == ("corrected",) and correct.PARAMS == ("correct.max_move_um", "correct.relax", "correct.accelerate",
                                                                    "correct.deflection_vector", "correct.gouge_limit",
                                                                    "correct.gouge_lines", "correct.refine_across_path",
-                                                                   "correct.hold_corners", "tool")
+                                                                   "correct.hold_corners", "correct.guard_fans", "tool")
 
 
 def test_incremental_program_random_moves_reverse_check():
@@ -1691,3 +1691,67 @@ def test_the_fan_of_a_wall_foot_limits_the_slope_vertex_beside_it():
     tip = slope_end(True)
     assert _ball_clearance(arc, tip, 5.0).min() >= -0.003
     assert tip[0] - 2.0 > 0.1                     # it still moves towards the wall, as far as it may
+
+
+def test_guarded_fans_keep_the_slope_vertex_off_a_wall_foot_climbed_in_two_corners():
+    """The sample's wall foot as the program cuts it (x 73, y 36.6): a slope pass (overcut 300 µm,
+    normal 20° from +z towards +x) ends 0.15 mm before the wall; a floor piece, a 0.5 mm climb
+    rounding the foot (normal 45°, +56.6 µm: the corner vertex asked to move 80 µm into the wall)
+    and the wall (2° draft) follow. Both ends of the climb are corners (normals 45° apart). With
+    ``guard_fans`` the gouge limit guards the fans the ball finishes standing at the corners, so
+    the slope vertex stays off the foot (the arcs of radius 5 about both corners, brute force)
+    while it still moves towards the wall (and up); the corners themselves move as without the
+    option (the lower one the foot's own error, closed form), although the lower corner's move
+    reaches 62.5 µm into the upper corner's fan (the shank's side at the wall's foot): its own
+    move is what cuts it. ``hold_corners`` would hold them."""
+    from stages.geometry import ToolShape
+    ball = ToolShape("ball", 5.0, 5.0, 40.0)
+    text = b"\n".join([b"%", b"O0001", b"G90 G17 G21", b"T1 M6", b"S8000 M3", b"G0 X-2. Y0. Z10.",
+                       b"G1 Z0.728 F500", b"X2. Z0.", b"X2.15", b"X2.1675 Z0.5", b"X2.29 Z4.", b"G0 Z50.",
+                       b"M30", b"%", b""])
+    blocks, _ = parse_program(text, "foot2.nc", "p")
+    passes = split_blocks(blocks, SPLIT)
+    p0, p1 = _xyz_of(passes, 0), _xyz_of(passes, 1)
+    slope = (p0[:, 0] == -2.0) & (p1[:, 0] == 2.0)
+    floor = (p0[:, 0] == 2.0) & (p1[:, 0] == 2.15)
+    climb = (p0[:, 0] == 2.15) & (p1[:, 2] == 0.5)
+    wall = (p1[:, 2] == 4.0) & (p0[:, 2] == 0.5)
+    s20, c45 = np.radians(20.0), np.sqrt(0.5)
+    normals = np.zeros((passes.num_rows, 3))
+    normals[slope], normals[floor] = [np.sin(s20), 0, np.cos(s20)], [0, 0, 1.0]
+    normals[climb], normals[wall] = [-c45, 0, c45], [-1.0, 0, 0]
+    err = np.where(slope, -300.0, np.where(climb, 80.0 * c45, 0.0))
+    keep = slope | floor | climb | wall
+    assert keep.sum() == 4
+    errors = _errors(passes, err, normals).filter(pa.array(keep))
+    generating = pa.table({"program_id": ["p"], "pass_id": passes.column("pass_id").filter(pa.array(wall)),
+                           "gen_x_mm": [7.23], "gen_y_mm": [0.0], "gen_z_mm": [7.25],
+                           "nx": [-1.0], "ny": [0.0], "nz": [0.0]})
+    # the foot: the ball standing at each corner, for the normals between its two passes
+    t = np.radians(np.linspace(0.0, 45.0, 91))
+    foot = np.vstack([np.stack([2.15 + 5 * np.sin(t), 0 * t, 5 - 5 * np.cos(t)], 1),
+                      np.stack([2.1675 + 5 * np.sin(t + np.pi / 4), 0 * t, 5.5 - 5 * np.cos(t + np.pi / 4)], 1)])
+    # what the program leaves of it: not inside the ball at the other corner or at the slope's end
+    foot = foot[np.min([_ball_clearance(foot, tip, 5.0) for tip in ([2.15, 0, 0], [2.1675, 0, 0.5], [2.0, 0, 0])],
+                       axis=0) > -1e-9]
+
+    def ends(**options):
+        c = correct_once(blocks, passes, errors, {"correct": {"max_move_um": 300.0, **options}},
+                         generating=generating, tool_shape=ball)
+        xyz = np.stack([c.column(k).to_numpy() for k in ("x_mm", "y_mm", "z_mm")], 1)
+        new = np.stack([c.column(k).to_numpy() for k in ("x_new_mm", "y_new_mm", "z_new_mm")], 1)
+        at = lambda p: new[np.flatnonzero(np.all(np.abs(xyz - p) < 1e-9, axis=1))[0]]  # noqa: E731
+        return at([2.0, 0, 0]), at([2.15, 0, 0]), at([2.1675, 0, 0.5])
+
+    slope_end, low, high = ends()
+    assert _ball_clearance(foot, slope_end, 5.0).min() < -0.06                 # into the foot
+    np.testing.assert_allclose((low - [2.15, 0, 0]) * 1000, [80.0, 0, 0], atol=1e-3)
+    slope_g, low_g, high_g = ends(guard_fans=True)
+    assert _ball_clearance(foot, slope_g, 5.0).min() >= -0.003
+    assert slope_g[0] - 2.0 > 0.05 and slope_g[2] > 0.1            # towards the wall as far as it may, and up
+    np.testing.assert_allclose(low_g, low, atol=1e-12)
+    np.testing.assert_allclose(high_g, high, atol=1e-12)
+    # the lower corner's move reaches into the upper corner's fan (the wall's foot at q 90°)
+    assert -0.060 > _ball_clearance(np.array([[7.1675, 0, 5.5]]), low_g, 5.0)[0] > -0.065
+    _, low_h, _ = ends(hold_corners=True)
+    assert np.dot(low_h - [2.15, 0, 0], [-c45, 0, c45]) * 1000 > -1e-3     # held: not into the climb
