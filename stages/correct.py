@@ -91,7 +91,7 @@ import pyarrow as pa
 from stages import InputError
 
 NAME = "correct"
-VERSION = "12"
+VERSION = "13"
 INPUTS = ("blocks", "passes", "errors", "generating")
 OUTPUTS = ("corrected",)
 # only the clip limit and the relaxation of rounds 2… change the table; tol_um and max_iter steer
@@ -132,6 +132,10 @@ MIN_RELAX = 1.0 / 16
 # the pass-to-pass jitter of the prediction, which would otherwise set the slope)
 MAX_ACCEL = 4.0
 ACCEL_MIN_UM = 5.0
+# ... and only where this round's step lies along the last one (|cos| ≥ this, 25°): the secant is
+# a model of the residual along the last move; a step that turned away from it (a ball whose
+# generating point moved from a slope onto the wall beside it as the path moved) is not on that line
+ACCEL_MIN_COS = 0.9
 # a vertex whose two passes' normals are further apart than this is a corner of the surface (a
 # pocket's corner between two walls, a wall's foot): the tool standing there generates the fan of
 # normals between them, which no pass predicts, and with correct.hold_corners it only moves out of
@@ -592,13 +596,16 @@ def _secant_fraction(step, prev_step, prev_frac, fallback, relax):
     error that falls as the path moves in, g < 0). The root of the linear residual is one step of
     1/(1 − g) = −1/σ: exact in one round for an error linear in the move, where the plain fixed
     point leaves g^k (the sample's wall passes: g ≈ 0.45). Clipped to [MIN_RELAX, ``relax`` ×
-    MAX_ACCEL]; where the last move was too small to tell (< ACCEL_MIN_UM) or the residual did not
-    fall along it (σ ≥ 0, no contraction), ``fallback`` (the halving rule).
+    MAX_ACCEL]; where the last move was too small to tell (< ACCEL_MIN_UM), the residual did not
+    fall along it (σ ≥ 0, no contraction) or turned away from its line (|cos(r_k, r_{k−1})| <
+    ACCEL_MIN_COS), ``fallback`` (the halving rule).
     """
     dx = prev_frac[:, None] * prev_step
     dx2 = np.einsum("ij,ij->i", dx, dx)
     sigma = np.einsum("ij,ij->i", step - prev_step, dx) / np.maximum(dx2, 1e-30)
-    ok = (dx2 > ACCEL_MIN_UM ** 2) & (sigma < 0) & np.isfinite(sigma)
+    along = np.abs(np.einsum("ij,ij->i", step, prev_step)) >= ACCEL_MIN_COS * (
+        np.linalg.norm(step, axis=1) * np.linalg.norm(prev_step, axis=1))
+    ok = (dx2 > ACCEL_MIN_UM ** 2) & (sigma < 0) & np.isfinite(sigma) & along
     mu = np.clip(-1.0 / np.where(ok, sigma, -1.0), MIN_RELAX, relax * MAX_ACCEL)
     return np.where(ok, mu, fallback)
 

@@ -1054,6 +1054,50 @@ def test_accelerated_rounds_reach_the_fixed_point_of_a_linear_error_in_one_round
     assert np.all(np.abs(runaway) < 10.0 * 1.2 * 1.5)
 
 
+def test_accelerated_rounds_fall_back_where_the_step_turned_away_from_the_last():
+    """The secant is a model of the residual along the last move. Round 1 moves every vertex by
+    10 µm along its pass normal n1; round 2's prediction on the moved path asks 14 µm along n2.
+    With n2 = n1 the residual fell from 10 to 4 over the 10 µm moved (σ = −0.6): the secant step
+    is 4 / 0.6, the vertex goes to 16.67 µm where the plain round goes to 14; n2 turned 3° off
+    n1 (the step 14·n2 − 10·n1 turned 11° off the last) is still on that line. Turned 60° (a ball
+    whose generating point moved off a slope onto the wall beside it) the step has turned 104°:
+    the accelerated round is the plain one (its halving rule: |step| 12.5 > 10, half a step).
+    References: the secant's and the halving rule's closed forms over the two rounds' vectors."""
+    from stages.correct import run
+    data, blocks, passes = _load(SAMPLES[0])
+    passes = passes.sort_by("pass_id")
+    n = passes.num_rows
+    n1 = np.array([0.6, 0.0, 0.8])
+
+    def rounds(n2, accelerate):
+        params = {"correct": {"max_move_um": 1e4, "accelerate": accelerate}}
+        cor = run({"blocks": blocks, "passes": passes,
+                   "errors": _errors(passes, np.full(n, 10.0), np.tile(n1, (n, 1)))}, params)["corrected"]
+        cor2 = run({"blocks": blocks, "passes": passes, "corrected": cor, "round_passes": passes,
+                    "errors": _errors(passes, np.full(n, 14.0), np.tile(n2, (n, 1)))}, params)["corrected"]
+        return [np.stack([c.column(f"{a}_new_mm").to_numpy() - c.column(f"{a}_mm").to_numpy()
+                          for a in "xyz"], 1) * 1e3 for c in (cor, cor2)]
+
+    for turn_deg, accelerated in ((0.0, True), (3.0, True), (60.0, False)):
+        t = np.radians(turn_deg)
+        n2 = np.array([0.6 * np.cos(t), np.sin(t), 0.8 * np.cos(t)])
+        m1, fast = rounds(n2, True)
+        _, plain = rounds(n2, False)
+        sign = np.sign(m1 @ n1)                     # the move's sense along the normal (one for all)
+        assert np.all(sign == sign[0]) and np.allclose(m1, sign[:, None] * 10.0 * n1, atol=1e-9)
+        r1, r2 = 10.0 * n1, 14.0 * n2 - 10.0 * n1   # the two rounds' steps, in units of sign
+        if accelerated:
+            mu = -1.0 / ((r2 - r1) @ r1 / (r1 @ r1))
+            want, want_plain = r1 + mu * r2, r1 + r2
+        else:
+            want = want_plain = r1 + 0.5 * r2
+        np.testing.assert_allclose(fast, sign[:, None] * want, atol=1e-9)
+        np.testing.assert_allclose(plain, sign[:, None] * want_plain, atol=1e-9)
+        if turn_deg == 0.0:                         # along the line: 10 + 4 / 0.6 against 10 + 4
+            assert np.linalg.norm(want) == pytest.approx(10.0 + 4.0 / 0.6, rel=1e-12)
+            assert np.linalg.norm(want_plain) == pytest.approx(14.0, rel=1e-12)
+
+
 def _ball_clearance(points, tip, radius):
     """Distance of points from a ball-end tool (tip ``tip``, axis +z), written out for the test."""
     centre = np.asarray(tip) + [0.0, 0.0, radius]
