@@ -215,7 +215,11 @@ def vm_errors(window, programs: dict, wf: dict, spacing_mm: float = 0.1, cache: 
     import pyarrow.parquet as pq
     from stages.virtual_machine import grid_plan
     x0, x1, y0, y1 = window
-    inputs = [wf["tool"], wf["material"], wf["machine"], _vm_split(wf), list(window), spacing_mm]
+    # the input files by their bytes, not their paths: a run from another checkout (a snapshot
+    # elsewhere) with the same files keeps the cache
+    tool = {k: v for k, v in wf["tool"].items() if k != "profile"}
+    machine = {**wf["machine"], "frf": {k: v for k, v in wf["machine"]["frf"].items() if k != "table"}}
+    inputs = [tool, wf["material"], machine, _vm_split(wf), list(window), spacing_mm]
     for f in (wf["stock"], wf["tool"].get("profile"), wf["machine"]["frf"].get("table")):
         if f:
             inputs.append(Path(f).read_bytes())
