@@ -165,6 +165,11 @@ class Correct(_Strict):
     # the corners themselves (their own moves cut their fans). Off: the whole sample program with
     # corner via points 38.4 / 34.5 % after one / three rounds against 39.1 / 34.5 %
     guard_fans: bool = False
+    # normals of a vertex's two passes closer than this are one normal for the least-squares
+    # refinement of its move (None: stages.correct.NORMAL_TOL_DEG, 2°). Realising two errors Δe apart
+    # along normals θ apart takes Δe / sin θ sideways: on the sample's corner climb, its passes' normals
+    # 2.95° apart in round 2 (+75.8, +87.0 µm) moved a vertex 159 µm towards the other wall
+    normal_tol_deg: Optional[float] = Field(None, gt=0, lt=30)
     ln_normals: bool = False                 # also write Heidenhain-style LN blocks with normals
     comp_table: bool = False                 # also write a contact-angle compensation table
     # undo the tool deflection as a vector (−δ; its tangential part shifts cusps), the rest of the

@@ -99,17 +99,17 @@ OUTPUTS = ("corrected",)
 # every cached round
 PARAMS = ("correct.max_move_um", "correct.relax", "correct.accelerate", "correct.deflection_vector",
           "correct.gouge_limit", "correct.gouge_lines", "correct.refine_across_path",
-          "correct.hold_corners", "correct.guard_fans", "tool")
+          "correct.hold_corners", "correct.guard_fans", "correct.normal_tol_deg", "tool")
 
 DEFAULTS = {"max_move_um": 50.0, "tol_um": 0.1, "max_iter": 5, "relax": 1.0, "ln_normals": False,
             "comp_table": False, "deflection_vector": False, "accelerate": False,
             "gouge_limit": True, "gouge_lines": False, "refine_across_path": False,
-            "hold_corners": False, "guard_fans": False}
+            "hold_corners": False, "guard_fans": False, "normal_tol_deg": None}
 _PLANE_AXES = {17: (0, 1, 2), 18: (2, 0, 1), 19: (1, 2, 0)}  # as stages.parse: (first, second, normal)
 _EPS_UM = 1e-9
 # normals of the two passes at a vertex closer than this are one normal for the least-squares
 # refinement of the vertex move (see vertex_moves); about 4× the contact-angle accuracy of the
-# generating stage (≤ 0.5° RMS, issue 3)
+# generating stage (≤ 0.5° RMS, issue 3). correct.normal_tol_deg overrides it
 NORMAL_TOL_DEG = 2.0
 # the refinement moves a vertex at most this many times the larger of its two errors: realising two
 # different errors along normals θ apart takes Δe / sin θ along the weak direction, and on the
@@ -175,7 +175,8 @@ def _xyz(table: pa.Table, names) -> np.ndarray:
     return np.stack([_col(table, c) for c in names], axis=1)
 
 
-def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True, along_path=None, across_path=False):
+def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True, along_path=None, across_path=False,
+                 normal_tol_deg=NORMAL_TOL_DEG):
     """Move of vertices shared by passes a and b (para 0084, refined by least squares), vectorised.
 
     The para 0084 move points along E'a + E'b with the least-squares magnitude. That realises both
@@ -189,7 +190,7 @@ def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True, along_path=N
         m = m_0084 + Nᵀ F(N Nᵀ) r,   N = [n_a; n_b],   r_k = −e_k − m_0084·n_k,
 
     F(G) = Σ_modes v (μ / (μ² + μ_tol²)) vᵀ over the eigen pairs (μ, v) of G, μ_tol =
-    1 − cos(:data:`NORMAL_TOL_DEG`): a mode of clearly different normals is solved exactly (F → G⁻¹),
+    1 − cos(``normal_tol_deg``): a mode of clearly different normals is solved exactly (F → G⁻¹),
     normals closer than the tolerance are treated as one (the difference of two nearly parallel
     normals is within the accuracy of the predicted normals and would amplify error noise by
     1/sin(angle)); there the para 0084 move (the mean) stays. The refinement is limited to
@@ -213,6 +214,8 @@ def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True, along_path=N
         (zero rows: no restriction)
     across_path : bool, solve the refinement with the normals projected across ``along_path``
         (``correct.refine_across_path``) instead of projecting the solved move
+    normal_tol_deg : float, normals closer than this are one normal for the refinement
+        (default :data:`NORMAL_TOL_DEG`; ``correct.normal_tol_deg``)
 
     Returns
     -------
@@ -255,7 +258,7 @@ def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True, along_path=N
     g[:, 1, 1] = np.einsum("ij,ij->i", nb, nb)
     g[:, 0, 1] = g[:, 1, 0] = np.einsum("ij,ij->i", na, nb)
     mu, vec = np.linalg.eigh(g)
-    mu_tol = 1.0 - np.cos(np.radians(NORMAL_TOL_DEG))
+    mu_tol = 1.0 - np.cos(np.radians(normal_tol_deg))
     gain = np.where(mu > 1e-12, mu / (mu ** 2 + mu_tol ** 2), 0.0)        # f(μ)/μ
     coef = np.einsum("vki,vk->vi", vec, r) * gain                           # per mode
     ab = np.einsum("vki,vi->vk", vec, coef)                                 # (α, β)
@@ -586,6 +589,11 @@ def _params(params: dict) -> dict:
     return p
 
 
+def _normal_tol(p: dict) -> float:
+    """The refinement's normal tolerance, degrees (``correct.normal_tol_deg``, None: the default)."""
+    return NORMAL_TOL_DEG if p.get("normal_tol_deg") is None else float(p["normal_tol_deg"])
+
+
 def _secant_fraction(step, prev_step, prev_frac, fallback, relax):
     """Fraction of this round's ``step`` each vertex takes: the secant of the rounds' fixed point.
 
@@ -679,7 +687,8 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
         node_move = vertex_moves(eb - np.einsum("ij,ij->i", d_mean, nb_), nb_, has_b,
                                  ea - np.einsum("ij,ij->i", d_mean, na_), na_, has_a,
                                  along_path=_straight_through(pstart, pend),
-                                 across_path=bool(p["refine_across_path"])) - d_mean
+                                 across_path=bool(p["refine_across_path"]),
+                                 normal_tol_deg=_normal_tol(p)) - d_mean
         node_xyz = np.vstack([pstart, pend[-1:]])
         node_normal = nb_ * has_b[:, None] + na_ * has_a[:, None]
         # vertex → node: the last pass starting at or before the block

@@ -121,6 +121,28 @@ def test_refined_move_realises_both_errors_at_oblique_normals():
     assert np.abs(np.linalg.norm(close, axis=1)).max() < 2 * np.abs(np.stack([ea, eb])).max()
 
 
+def test_normal_tolerance_keeps_a_climb_vertex_from_sliding_sideways():
+    """``normal_tol_deg``: the sample's corner climb in round 2, passes 2.95° apart (+75.8 µm along
+    (−1, −0.004, 0.027), +87.0 µm along (−0.997, −0.049, 0.052)). The exact solve slides the vertex
+    Δe / sin θ ≈ 220 µm across (towards the pocket's other wall); the 2° filter keeps 83 % of that,
+    capped at 2 × 87 µm. With a 5° tolerance the mode is treated as one normal (its filter
+    μ²/(μ² + μ_tol²) = 0.11) and the move stays within 30 µm of the para 0084 mean; a 30° corner is
+    still realised (m·n = −e within 1 %: its filter is 0.9997)."""
+    unit = lambda v: np.asarray(v, float) / np.linalg.norm(v)  # noqa: E731
+    na, nb = unit([-1.0, -0.004, 0.027])[None], unit([-0.997, -0.049, 0.052])[None]
+    ea, eb, yes = np.array([75.781]), np.array([86.973]), np.array([True])
+    mean = vertex_moves(ea, na, yes, eb, nb, yes, refine=False)[0]
+    sideways = lambda m: abs(m[1] - mean[1])  # noqa: E731  (y: across both normals)
+    assert sideways(vertex_moves(ea, na, yes, eb, nb, yes)[0]) > 100.0           # the default, 2°
+    held = vertex_moves(ea, na, yes, eb, nb, yes, normal_tol_deg=5.0)[0]
+    assert sideways(held) < 30.0
+    assert np.linalg.norm(held - mean) < 30.0
+    wall = unit([np.cos(np.radians(30)), 0.0, np.sin(np.radians(30))])[None]
+    floor = np.array([[0.0, 0.0, 1.0]])
+    m = vertex_moves(np.array([20.0]), wall, yes, np.array([-8.0]), floor, yes, normal_tol_deg=5.0)[0]
+    np.testing.assert_allclose([m @ wall[0], m @ floor[0]], [-20.0, 8.0], rtol=0.01)
+
+
 # ------------------------------------------------------------------------------------ writer
 
 @pytest.mark.parametrize("path", SAMPLES)
