@@ -814,7 +814,8 @@ def test_stage_run_matches_schema():
     assert correct.OUTPUTS == ("corrected",) and correct.PARAMS == ("correct.max_move_um", "correct.relax", "correct.accelerate",
                                                                    "correct.deflection_vector", "correct.gouge_limit",
                                                                    "correct.gouge_lines", "correct.refine_across_path",
-                                                                   "correct.hold_corners", "correct.guard_fans", "tool")
+                                                                   "correct.hold_corners", "correct.guard_fans",
+                                                                   "correct.normal_tol_deg", "tool")
 
 
 def test_incremental_program_random_moves_reverse_check():
