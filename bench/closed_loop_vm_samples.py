@@ -19,7 +19,12 @@ machined error). Round k:
 No prediction is involved: the rounds show what the correction itself reaches when its input is the
 machine's error per pass, against which the pipeline's predicted rounds can be read.
 
-    python3 bench/closed_loop_vm_samples.py RUN_DIR [--rounds 3] [--max-move 300]
+With ``--fit-points DAMP`` step 2 takes its pass-end moves from :func:`node_moves_from_points`
+instead: the piecewise-linear path move that best cancels every probe point's error along the
+point's own normal (global least squares), not one error per pass. It shows whether the per-pass
+representation is what holds the loop.
+
+    python3 bench/closed_loop_vm_samples.py RUN_DIR [--rounds 3] [--max-move 300] [--fit-points 0.3]
 """
 from __future__ import annotations
 
@@ -52,6 +57,42 @@ def errors_from_points(pass_id, err_um, normals, min_points: int = 1):
                      "nx": n[keep, 0], "ny": n[keep, 1], "nz": n[keep, 2]})
 
 
+def node_moves_from_points(passes, pass_id, points, normals, err_um, radius_mm: float, damp: float):
+    """Moves (µm) of the pass-end nodes that best cancel the points' errors along their normals.
+
+    Node k is the start of pass k (``passes`` in pass_id order; the last node the end of the last
+    pass), as in :func:`stages.correct.correct_once`. A point of pass k lies where the ball's centre
+    (the point + R·n) is nearest the pass's centre line, at fraction t; the tool there moves by
+    (1 − t)·M_k + t·M_{k+1}, and the point's error changes by that move along its normal n.
+    Solved for all nodes at once by damped least squares (``damp`` µm of move per µm of residual,
+    ``scipy.sparse.linalg.lsqr``): min Σ (e_i + ((1 − t_i)·M_k + t_i·M_{k+1})·n_i)² + damp²·Σ |M|².
+
+    Returns
+    -------
+    moves : (P + 1, 3) array, µm
+    residual : (points,) the fit's residual error, µm
+    """
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import lsqr
+    pid = passes.column("pass_id").to_numpy()
+    k = np.searchsorted(pid, np.asarray(pass_id, np.int64))
+    if np.any(k >= pid.size) or np.any(pid[np.minimum(k, pid.size - 1)] != pass_id):
+        raise SystemExit("fit-points: a probe point's pass is not in the run's passes table")
+    xyz = lambda *c: np.stack([passes.column(n).to_numpy() for n in c], 1)[k]  # noqa: E731
+    p0, p1 = xyz("x0_mm", "y0_mm", "z0_mm"), xyz("x1_mm", "y1_mm", "z1_mm")
+    n = np.asarray(normals, float)
+    centre = np.asarray(points, float) + radius_mm * n - np.array([0.0, 0.0, radius_mm])   # as a tip
+    d = p1 - p0
+    t = np.clip(np.einsum("ij,ij->i", centre - p0, d) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-12), 0, 1)
+    m = len(k)
+    cols = (3 * k[:, None] + np.arange(6)[None, :]).ravel()
+    vals = np.concatenate([(1 - t)[:, None] * n, t[:, None] * n], 1).ravel()
+    a = sp.csr_matrix((vals, (np.repeat(np.arange(m), 6), cols)), shape=(m, 3 * (pid.size + 1)))
+    e = np.asarray(err_um, float)
+    sol = lsqr(a, -e, damp=damp, atol=1e-10, btol=1e-10, iter_lim=20000)[0]
+    return sol.reshape(-1, 3), e + a @ sol
+
+
 def main():
     import pandas as pd
     import pyarrow.parquet as pq
@@ -67,6 +108,9 @@ def main():
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--max-move", type=float, default=None,
                     help="clip of the total vertex move, µm; default: the run's workflow")
+    ap.add_argument("--fit-points", type=float, default=None, metavar="DAMP",
+                    help="pass-end moves fitted to every probe point (node_moves_from_points) with this "
+                         "damping, instead of para 0084's from one error per pass")
     args = ap.parse_args()
     run = args.run.resolve()
     wf = yaml.safe_load((run / "wf1.yaml").read_text())
@@ -86,20 +130,26 @@ def main():
     base = float(np.sqrt(np.mean(err ** 2)))
     print(f"{run.name}: {len(pts)} probe points ({xs.min():.0f}–{xs.max():.0f}, {ys.min():.0f}–{ys.max():.0f} mm), "
           f"error RMS {base:.3f} um before")
+    tag = "" if args.fit_points is None else f"fit{args.fit_points:g}_"     # the files of this mode
     corrected, current, report = None, blocks, {"run": str(run), "before_rms_um": base, "rounds": []}
     for k in range(1, args.rounds + 1):
         errors = errors_from_points(pts.pass_id.to_numpy(), err, normals)
+        fit = None
+        if args.fit_points is not None:
+            fit, residual = node_moves_from_points(passes, pts.pass_id.to_numpy(), pts[["x_mm", "y_mm", "z_mm"]].to_numpy(),
+                                                   normals, err, wf["tool"]["diameter_mm"] / 2.0, args.fit_points)
+            print(f"  round {k}: the fit leaves {np.sqrt(np.mean(residual ** 2)):.2f} um RMS at the points", flush=True)
         corrected = correct_once(current, passes, errors, params, previous=corrected, relax=None,
-                                 generating=generating, tool_shape=shape)
+                                 generating=generating, tool_shape=shape, node_moves=fit)
         current = apply_corrected(blocks, corrected)
         text = write_program(src, blocks, corrected)
         if not reverse_check(text, blocks, corrected)["ok"]:
             raise SystemExit(f"round {k}: the written program does not parse back to the corrected table")
-        name = f"{k} measured round{'s' if k > 1 else ''}"
-        (run / f"measured_{k}.nc").write_bytes(text)
+        name = f"{k} {tag.replace('_', ' ')}measured round{'s' if k > 1 else ''}"
+        (run / f"{tag}measured_{k}.nc").write_bytes(text)
         res = bench.vm_errors(window, {"original": src, name: text}, wf, cache=run.parent / "vm_cache",
-                              dump=run / f"points_measured_{k}.parquet")
-        err = pq.read_table(run / f"points_measured_{k}.parquet").column(f"err_{name.replace(' ', '_')}_um").to_numpy()
+                              dump=run / f"points_{tag}measured_{k}.parquet")
+        err = pq.read_table(run / f"points_{tag}measured_{k}.parquet").column(f"err_{name.replace(' ', '_')}_um").to_numpy()
         v = res[name]
         move = corrected.column("move_um").to_numpy()
         print(f"  round {k}: {errors.num_rows} passes with a measured error, max move {move.max():.1f} um "
@@ -109,7 +159,7 @@ def main():
               + ", ".join(f"{b} {v[b]['rms_um']:.2f} um" for _, _, b in bench.Q_BANDS if v[b]["rms_um"] is not None),
               flush=True)
         report["rounds"].append({"round": k, **v})
-    (run / "summary_measured.json").write_text(json.dumps(report, indent=1, default=str))
+    (run / f"summary_{tag}measured.json").write_text(json.dumps(report, indent=1, default=str))
 
 
 if __name__ == "__main__":

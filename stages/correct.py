@@ -621,7 +621,7 @@ def _secant_fraction(step, prev_step, prev_frac, fallback, relax):
 def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: dict,
                  previous: pa.Table | None = None, relax: float | None = None,
                  accelerate: bool = False, generating: pa.Table | None = None,
-                 tool_shape=None) -> pa.Table:
+                 tool_shape=None, node_moves: np.ndarray | None = None) -> pa.Table:
     """One correction round: move every NC vertex of ``blocks`` against ``errors``.
 
     Parameters
@@ -643,6 +643,11 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
     generating, tool_shape : the ``generating`` table of the ORIGINAL program's passes and the
         tool (:class:`stages.geometry.ToolShape`): with both, moves are limited so that the tool
         does not cut into the surface other passes generate (:func:`gouge_limit`); else unlimited
+    node_moves : (passes + 1, 3) moves (µm) of the pass-end nodes (node k: start of pass k, the last
+        the end of the last pass) found elsewhere — a fit to measured points, see
+        ``bench/closed_loop_vm_samples.py --fit-points`` — used instead of para 0084's from
+        ``errors``; ``errors`` still say which vertices are corrected, and the accumulation, gouge
+        limit, clip and arc refit are the same
 
     Returns
     -------
@@ -689,6 +694,11 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
                                  along_path=_straight_through(pstart, pend),
                                  across_path=bool(p["refine_across_path"]),
                                  normal_tol_deg=_normal_tol(p)) - d_mean
+        if node_moves is not None:
+            if np.shape(node_moves) != node_move.shape:
+                raise InputError(f"correct: node_moves has shape {np.shape(node_moves)}, the passes "
+                                 f"need {node_move.shape}")
+            node_move = np.asarray(node_moves, float)
         node_xyz = np.vstack([pstart, pend[-1:]])
         node_normal = nb_ * has_b[:, None] + na_ * has_a[:, None]
         # vertex → node: the last pass starting at or before the block

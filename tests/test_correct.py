@@ -14,6 +14,7 @@ import numpy as np
 import pyarrow as pa
 import pytest
 
+from stages import InputError
 from stages.correct import (REFINE_MAX_RATIO, apply_corrected, contact_lines, corner_fans, corner_limit,
                             correct_iteratively, correct_once, gouge_limit, vertex_moves)
 from stages.nc_writer import reverse_check, via_blocks, write_comp_table, write_ln_program, write_program
@@ -1822,3 +1823,42 @@ def test_guarded_fans_keep_the_slope_vertex_off_a_wall_foot_climbed_in_two_corne
     assert -0.060 > _ball_clearance(np.array([[7.1675, 0, 5.5]]), low_g, 5.0)[0] > -0.065
     _, low_h, _ = ends(hold_corners=True)
     assert np.dot(low_h - [2.15, 0, 0], [-c45, 0, c45]) * 1000 > -1e-3     # held: not into the climb
+
+
+def test_pass_end_moves_fitted_to_probe_points_are_the_moves_that_made_their_errors():
+    """``bench/closed_loop_vm_samples.py --fit-points``: errors made by a known piecewise-linear
+    move of a floor row (e = −m(x)·n at points along it) are fitted back to that move at every
+    node, and ``correct_once(node_moves=…)`` moves the program's vertices by it."""
+    import sys
+    from pathlib import Path
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+    from closed_loop_vm_samples import node_moves_from_points
+    lines = [b"%", b"O0011", b"G90 G17 G21", b"T1 M6", b"S1000 M3", b"G0 X0.000 Y0.000 Z1.000", b"G1 Z0.000 F100"]
+    lines += [b"X%.3f" % (1.0 * (i + 1)) for i in range(10)] + [b"G0 Z10.000", b"M30", b"%", b""]
+    text = b"\n".join(lines)
+    blocks, _ = parse_program(text, "t", "p")
+    passes = split_blocks(blocks, {**SPLIT, "split": {**SPLIT["split"], "merge_max_mm": 0.0}}).sort_by("pass_id")
+    x0, x1 = passes.column("x0_mm").to_numpy(), passes.column("x1_mm").to_numpy()
+    z0, z1 = passes.column("z0_mm").to_numpy(), passes.column("z1_mm").to_numpy()
+    row = np.flatnonzero((z0 == 0) & (z1 == 0) & (x1 > x0))           # the ten 1 mm floor passes
+    assert row.size == 10
+    node_z = 20.0 * np.sin(np.linspace(0.0, 3.0, 11))                   # µm, at x = 0 … 10
+    x = np.linspace(0.05, 9.95, 100)                                    # probe points on the floor
+    k = np.minimum((x // 1.0).astype(int), 9)
+    t = x - k
+    err = -((1 - t) * node_z[k] + t * node_z[k + 1])                    # e + m·n = 0, n = +z
+    pts = np.stack([x, np.zeros_like(x), np.zeros_like(x)], 1)
+    nrm = np.tile([0.0, 0.0, 1.0], (x.size, 1))
+    pid = passes.column("pass_id").to_numpy()[row][k]
+    moves, residual = node_moves_from_points(passes, pid, pts, nrm, err, 5.0, 1e-4)
+    assert np.sqrt(np.mean(residual ** 2)) < 1e-3
+    np.testing.assert_allclose(moves[row[0]:row[-1] + 2, 2], node_z, atol=1e-3)
+    assert np.abs(moves[:, :2]).max() < 1e-6                           # nothing asks for x or y
+    errors = _errors(passes.take(row), np.zeros(row.size), np.tile([0.0, 0.0, 1.0], (row.size, 1)))
+    c = correct_once(blocks, passes, errors, {"correct": {"max_move_um": 100.0}}, node_moves=moves)
+    xs = c.column("x_mm").to_numpy()
+    on_row = (c.column("z_mm").to_numpy() == 0) & (c.column("block_no").to_numpy() > 6)
+    dz = (c.column("z_new_mm").to_numpy() - c.column("z_mm").to_numpy()) * 1000
+    np.testing.assert_allclose(dz[on_row], np.interp(xs[on_row], np.arange(11.0), node_z), atol=1e-3)
+    with pytest.raises(InputError, match="node_moves"):
+        correct_once(blocks, passes, errors, {"correct": {}}, node_moves=moves[:-1])
