@@ -1825,13 +1825,12 @@ def test_guarded_fans_keep_the_slope_vertex_off_a_wall_foot_climbed_in_two_corne
     assert np.dot(low_h - [2.15, 0, 0], [-c45, 0, c45]) * 1000 > -1e-3     # held: not into the climb
 
 
-def test_pass_end_moves_fitted_to_probe_points_are_the_moves_that_made_their_errors():
+def test_pass_end_moves_fitted_to_probe_points_are_the_moves_that_made_their_errors(monkeypatch):
     """``bench/closed_loop_vm_samples.py --fit-points``: errors made by a known piecewise-linear
     move of a floor row (e = −m(x)·n at points along it) are fitted back to that move at every
     node, and ``correct_once(node_moves=…)`` moves the program's vertices by it."""
-    import sys
     from pathlib import Path
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "bench"))
     from closed_loop_vm_samples import node_moves_from_points
     lines = [b"%", b"O0011", b"G90 G17 G21", b"T1 M6", b"S1000 M3", b"G0 X0.000 Y0.000 Z1.000", b"G1 Z0.000 F100"]
     lines += [b"X%.3f" % (1.0 * (i + 1)) for i in range(10)] + [b"G0 Z10.000", b"M30", b"%", b""]
