@@ -174,7 +174,8 @@ class Correct(_Strict):
     comp_table: bool = False                 # also write a contact-angle compensation table
     # undo the tool deflection as a vector (−δ; its tangential part shifts cusps), the rest of the
     # error along the normals (False: everything along the normals, seed 000 para 0084). Off: on
-    # the sample's boss foot its rounds do not contract (stages/correct.py)
+    # the sample's boss foot its rounds do not contract, and on the whole sample program it cut a
+    # convex row and the pocket's corners by 0.7–0.8 mm (stages/correct.py)
     deflection_vector: bool = False
     # cut long straight cuts at the split stage's pass ends, and plain arcs at their chords, and
     # write the moved ends as inserted G1 lines (stages.nc_writer.via_blocks): the passes of one
