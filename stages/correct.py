@@ -32,9 +32,9 @@ m = −(e_i n_i + e_j n_j), which realises both errors exactly.
   vertex to vertex; 71 clipped vertices against 19): the rounds do not contract there, and
   halving the rounds' steps (``correct.relax: 0.5``) does not help (wall 19.9 %, boss foot
   94.7 %). On the whole sample program (with via points, guarded fans, accelerated rounds, a
-  450 µm clip) 48.6 / 70.6 % after one / three rounds against 39.7 / 32.7 %: the bulk better, but
-  −δ̄ also moves a vertex along the surface, and on a convex row (y 61.27) and in the pocket's
-  corners that cut 0.7–0.8 mm within three rounds. Hence off.
+  450 µm clip) 48.6 / 70.6 % after one / three rounds against 39.7 / 32.7 %: −δ̄ also moves a
+  vertex along the surface, and on a convex row (y 61.27) and in the pocket's corners that cut
+  0.7–0.8 mm within three rounds. Hence off.
 - Vertices inside a pass that merges several short blocks get the error of that pass alone.
 - A pass without an error row (pruned, non-cutting, rapid) contributes nothing: a vertex between it
   and a predicted pass follows the predicted pass; a vertex with no predicted pass on either side
