@@ -78,7 +78,8 @@ def via_blocks(data: bytes, blocks: pa.Table, max_mm: float, end_mm: float = 0.0
         another, :func:`stages.split.corner_ends`) at least twice this long is cut this far from
         the corner, and the cut is marked ``via_only``: the split stage keeps the two blocks one
         pass, so the passes do not change, but the corner vertex's move (for both passes) no
-        longer drags the piece's body with it
+        longer drags the piece's body with it (once the moves have taken the via point off the
+        line, the split of the corrected program has a pass boundary there)
 
     Returns
     -------

@@ -14,7 +14,9 @@ Here:
   ``passage_envelope``) and, with ``correct.via_points``, corrected apart;
 - blocks whose end is a via point inside a pass (``via_only``: ``correct.corner_via_mm``, a cut
   the parse stage makes beside a path corner) are joined with the next block into one pass, so the
-  passes are those of the uncut program;
+  passes are those of the uncut program, while the via point lies within ``chord_tol_mm`` of the
+  joined pass; one the correction has moved off it (a corrected program, the next round) is a
+  vertex of the path and a pass boundary;
 - runs of short consecutive cutting moves are merged into passes no longer than
   ``split.merge_max_mm``, but only where every merged vertex stays within ``chord_tol_mm`` of the
   merged pass, so merging never moves the path by more than the chord tolerance;
@@ -32,7 +34,7 @@ import pyarrow as pa
 from stages.parse import ARC_CCW, ARC_CW, DWELL, RAPID, _PLANE_AXES
 
 NAME = "split"
-VERSION = "2"
+VERSION = "3"
 INPUTS = ("parse_status", "blocks")
 OUTPUTS = ("passes", "programs")
 PARAMS = ("split", "machine.rapid_mm_min", "tool")
@@ -216,6 +218,25 @@ def _merge_short(owner, p0, p1, mergeable, merge_max, tol):
     return split_first[order], split_last[order]
 
 
+def _off_chord_groups(join: np.ndarray, a: np.ndarray, b: np.ndarray, tol: float) -> np.ndarray:
+    """Per pass: whether the group of passes it would be joined into has an inner vertex more than
+    ``tol`` off the group's chord.
+
+    ``join[j]``: pass j joins pass j − 1; ``a``, ``b``: each pass's start and end before joining.
+    """
+    group = np.cumsum(~join) - 1
+    starts = np.flatnonzero(~join)
+    ends = np.concatenate((starts[1:] - 1, [join.size - 1]))
+    c0, c1 = a[starts][group], b[ends][group]
+    inner = np.concatenate((join[1:], [False]))           # pass j's end is inside its group
+    d = c1 - c0
+    t = np.clip(np.einsum("ij,ij->i", b - c0, d) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-30), 0, 1)
+    off = inner & (np.linalg.norm(c0 + t[:, None] * d - b, axis=1) > tol)
+    bad = np.zeros(starts.size, bool)
+    np.logical_or.at(bad, group, off)
+    return bad[group]
+
+
 def split_blocks(blocks: pa.Table, params: dict) -> pa.Table:
     """Turn a ``blocks`` table into a ``passes`` table (see module docstring)."""
     sp, machine, tool = params["split"], params["machine"], params["tool"]
@@ -272,6 +293,10 @@ def split_blocks(blocks: pa.Table, params: dict) -> pa.Table:
         join = np.zeros(first.size, bool)
         join[1:] = (via_only[owner[last[:-1]]] & (owner[last[:-1]] != owner[first[1:]])
                     & (motion[owner[first[1:]]] == 1) & same_kind[first[1:]])
+        # ... as long as the via point lies on the joined pass. A correction moves it apart from
+        # the corner (that is what it is for), and a pass drawn straight past it is not the path
+        # the machine cuts: the sample pocket's corner climb ran 0.2 mm off it after one round
+        join &= ~_off_chord_groups(join, p0[first], p1[last], sp["chord_tol_mm"])
         keep = ~join
         last = np.concatenate((last[np.flatnonzero(keep)[1:] - 1], last[-1:]))
         first = first[keep]

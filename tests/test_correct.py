@@ -1703,6 +1703,39 @@ def test_corner_via_points_keep_the_passes_and_carry_each_line_s_own_move_beside
     assert rep["ok"], rep["message"]
 
 
+def test_a_corner_via_point_moved_off_its_pass_splits_the_corrected_program_there():
+    """The next round predicts the path the machine will cut. The descent of the pocket corner
+    above runs Z5 → Z0.5 (via) → Z0 in one pass; the correction moves its ends (88, 0, 0) and
+    (88, 200, 0) µm and the via point (88, 0, 0) µm, 180 µm off the chord between the ends
+    (at z 0.5 the chord is at y 0.9 · 0.2 mm). Split again, the corrected program has a pass
+    boundary at the via point, at its written coordinates; a via point on the chord, or within the
+    chord tolerance (1 µm) of it, keeps the one pass."""
+    text = b"\n".join([b"%", b"O0001", b"G90 G17 G21", b"T1 M6", b"S8000 M3", b"G0 X0. Y0. Z10.",
+                       b"G1 Z0. F500", b"X-20.", b"G0 Z50.", b"M30", b"%", b""])
+    blocks, _ = parse_program(text, "corner.nc", "p")
+    vb = via_blocks(text, blocks, 5.0, corner_via_mm=0.5)
+    passes = split_blocks(vb, SPLIT)
+    down = ((_xyz_of(passes, 1)[:, 2] < _xyz_of(passes, 0)[:, 2]) & (passes.column("motion").to_numpy() == 1))
+    row = _xyz_of(passes, 1)[:, 0] < _xyz_of(passes, 0)[:, 0]
+    normals = np.where(down[:, None], [-1.0, 0, 0], [0, -1.0, 0])
+    errors = _errors(passes, np.where(down, 88.0, 200.0), normals).filter(pa.array(down | row))
+    c = correct_once(vb, passes, errors, {"correct": {"max_move_um": 300.0}})
+    again = split_blocks(apply_corrected(vb, c), SPLIT)
+    assert again.num_rows == passes.num_rows + 1
+    a0, a1 = _xyz_of(again, 0), _xyz_of(again, 1)
+    k = int(np.flatnonzero(np.all(np.abs(a1 - [0.088, 0.0, 0.5]) < 1e-9, axis=1))[0])
+    np.testing.assert_allclose(a0[k], [0.088, 0.0, 5.0], atol=1e-9)       # the descent's body
+    np.testing.assert_allclose(a0[k + 1], [0.088, 0.0, 0.5], atol=1e-9)   # its last 0.5 mm
+    np.testing.assert_allclose(a1[k + 1], [0.088, 0.2, 0.0], atol=1e-9)
+    # the via point on the chord, and 0.5 µm off it: one pass
+    for off_mm in (0.0, 0.0005):
+        nb = vb.to_pandas()
+        for e in ("1", "0"):
+            at = (nb[f"z{e}_mm"] == 0.5) & (nb[f"x{e}_mm"] == 0.0)
+            nb.loc[at, f"y{e}_mm"] = off_mm
+        assert split_blocks(pa.Table.from_pandas(nb, schema=vb.schema), SPLIT).num_rows == passes.num_rows
+
+
 def test_corner_fans_are_the_ball_points_of_the_normals_between():
     """The fan of a floor-wall corner (normals +z and −x) for a Ø10 ball with its tip at (1, 2, 3):
     the point of normal n is the centre − 5 n (closed form), 9 steps of 10° from the floor's end
