@@ -180,11 +180,12 @@ def _cached(cache: Path, key: str, compute):
     return out
 
 
-def _machine(text: bytes, rigid: bool, wf: dict, window):
+def _machine(text: bytes, rigid: bool, wf: dict, window, step_mm=None):
     """The virtual machine loaded with the passes of ``text`` within ``MARGIN_MM`` of the window.
     The real machine cuts with the real tool (its measured profile); the reference is the nominal
     tool on a rigid machine: the error is deflection plus tool shape, both of which the prediction
-    corrects."""
+    corrects. ``step_mm``: the machine's deflection resolution along the path (None: one deflection
+    a pass; the rigid reference has none to resolve)."""
     import pyarrow as pa
     from stages.virtual_machine import VirtualMachine
     x0, x1, y0, y1 = window
@@ -197,18 +198,20 @@ def _machine(text: bytes, rigid: bool, wf: dict, window):
     frf = ({a: [{"fn_hz": 900.0, "zeta": 0.03, "k_n_per_um": 1e9}] for a in "xy"} if rigid
            else wf["machine"]["frf"])
     return VirtualMachine(passes.filter(pa.array(near)), nominal if rigid else wf["tool"], wf["material"],
-                          {"frf": frf}, wf["stock"])
+                          {"frf": frf}, wf["stock"], deflection_step_mm=None if rigid else step_mm)
 
 
-def _machined_error(text: bytes, wf: dict, window, pts, nrm, ideal) -> dict:
+def _machined_error(text: bytes, wf: dict, window, pts, nrm, ideal, step_mm=None) -> dict:
     """Error (µm) of ``text`` machined on the virtual machine at the probe points."""
-    return {"err": _machine(text, False, wf, window).probe(pts, nrm) - ideal}
+    return {"err": _machine(text, False, wf, window, step_mm).probe(pts, nrm) - ideal}
 
 
 def vm_errors(window, programs: dict, wf: dict, spacing_mm: float = 0.1, cache: Path | None = None,
-              dump: Path | None = None, predicted=None) -> dict:
+              dump: Path | None = None, predicted=None, vm_step_mm: float | None = None) -> dict:
     """Machine ``programs`` (name → text, "original" first) on the virtual machine and probe them;
-    the programs not in ``cache`` are machined side by side, one process a core."""
+    the programs not in ``cache`` are machined side by side, one process a core. ``vm_step_mm``:
+    the machine's deflection resolution along the path (None: one deflection a pass, whose
+    resolution then follows the program's blocks)."""
     from concurrent.futures import ProcessPoolExecutor
 
     import pyarrow as pa
@@ -236,10 +239,13 @@ def vm_errors(window, programs: dict, wf: dict, spacing_mm: float = 0.1, cache: 
 
     def probed(text):
         def run():
-            return machined[text] if text in machined else _machined_error(text, wf, window, pts, nrm, ideal)
+            return (machined[text] if text in machined
+                    else _machined_error(text, wf, window, pts, nrm, ideal, vm_step_mm))
         return (_cached(cache, _vm_key(text, wf, *inputs), run) if cache else run())["err"]
 
     ref = _cached(cache, _vm_key(programs["original"], wf, b"rigid", *inputs), reference) if cache else reference()
+    if vm_step_mm is not None:                  # the machined programs' key; not the rigid reference's
+        inputs.append({"deflection_step_mm": float(vm_step_mm)})
     pts, nrm, ideal = ref["pts"], ref["nrm"], ref["ideal"]
     if len(pts) == 0:
         return None
@@ -255,7 +261,7 @@ def vm_errors(window, programs: dict, wf: dict, spacing_mm: float = 0.1, cache: 
                               if cache is None or not (cache / f"{_vm_key(t, wf, *inputs)}.npz").is_file()))
     if len(todo) > 1:                           # the machine runs on one core: one program a core
         with ProcessPoolExecutor(min(len(todo), os.cpu_count() or 1)) as pool:
-            futures = [pool.submit(_machined_error, t, wf, window, pts, nrm, ideal) for t in todo]
+            futures = [pool.submit(_machined_error, t, wf, window, pts, nrm, ideal, vm_step_mm) for t in todo]
             machined.update(zip(todo, (f.result() for f in futures)))
     for name, text in programs.items():
         e = probed(text)
@@ -306,6 +312,9 @@ def main():
                     help="any other workflow value for both runs (repeatable), e.g. split.end_piece_mm=0.5")
     ap.add_argument("--workers", type=int, default=1, help="Dask workers of the pipeline runs")
     ap.add_argument("--spacing", type=float, default=0.1, help="probe spacing along the passes, mm")
+    ap.add_argument("--vm-step-mm", type=float, default=None,
+                    help="the virtual machine's deflection resolution along the path, mm (default: one "
+                         "deflection a pass)")
     ap.add_argument("--rounds", default="1,3", help="round counts of the corrected programs, comma-separated")
     ap.add_argument("--program", type=Path, default=PROGRAM,
                     help="the NC program (windows are cut from it as raster rows along X)")
@@ -345,7 +354,8 @@ def main():
         wf_used = yaml.safe_load(next(root.glob("wf*.yaml")).read_text())
         res = vm_errors(w, written, wf_used, args.spacing, cache=Path(args.out) / "vm_cache",
                         dump=root / "points.parquet",
-                        predicted=(errs.column("pass_id").to_numpy(), errs.column("err_um").to_numpy()))
+                        predicted=(errs.column("pass_id").to_numpy(), errs.column("err_um").to_numpy()),
+                        vm_step_mm=args.vm_step_mm)
         if res is None:
             print(f"window x {w[0]:g}–{w[1]:g}, y {w[2]:g}–{w[3]:g}: no probe point of the plan in it, skipped")
             continue

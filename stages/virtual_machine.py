@@ -8,7 +8,9 @@ unmodelled effects switched on. It shares nothing with the prediction path (``cu
 Model (all vectorised over passes / points)
 -------------------------------------------
 - Engagement: micro-edges of the ball (``N_Z`` levels) and of the cylindrical side up to the
-  stick-out (every ``SHANK_DZ_MM``), × ``N_PHI`` position angles, at each pass's mid point are in
+  stick-out (every ``SHANK_DZ_MM``), × ``N_PHI`` position angles, at each pass's mid point (or, with
+  ``deflection_step_mm``, at the mid point of each of its equal pieces of at most that length, so
+  that the deflection's resolution along the path does not follow the program's blocks) are in
   the material when they lie below the stock (a height field rasterised from the stock mesh, or
   the box) and outside the tool (ball and side) swept along every earlier pass (exact distances to
   the candidate passes from a plan-view KD-tree).
@@ -17,7 +19,7 @@ Model (all vectorised over passes / points)
   and the flutes' radial offsets ρ_j (runout); Lee–Altintas tangential / radial / axial forces.
 - Dynamics: each mode (x and y) integrated in the time domain with the exact zero-order-hold
   state-transition matrix from rest until the free response has died out; the last revolution is
-  the periodic deflection of the pass (no FFT, no frequency-domain compliance).
+  the periodic deflection of the pass or piece (no FFT, no frequency-domain compliance).
 - Surface: every plan point p (normal n) is cut by discrete tooth passages: for each flute and the
   spindle revolutions around the time the nominal centre passes p, the flute's sphere (radius R
   less the tool's measured shape error ``tool.profile`` at the contact angle, and the effects'
@@ -72,6 +74,7 @@ SHANK_DZ_MM = 0.25  # micro-edge length on the cylindrical side (walls: mm-long 
 # seed's 51-level cylinder bench: 16 % with 3) -- kept switchable, see the issue-5 note
 PROBE_PASSES = 1
 PASSAGES = (-1, 0, 1)   # spindle revolutions around the nominal passage that cut each point
+K_NEAR = 8              # engagement: sub-segments tested first for each micro-edge (a speed-up only; 0: none)
 
 EFFECTS = {
     "runout": ("e_um", "phase_deg"),
@@ -306,7 +309,8 @@ def _inside_tool(x, a, ab, R, side):
 class VirtualMachine:
     """One program machined on the virtual machine; effects are applied per call of ``probe``."""
 
-    def __init__(self, passes: pa.Table, tool: dict, material: dict, machine: dict, stock):
+    def __init__(self, passes: pa.Table, tool: dict, material: dict, machine: dict, stock,
+                 deflection_step_mm: Optional[float] = None):
         if tool["type"] != "ball":
             raise InputError(f"tool.type {tool['type']!r}: the virtual machine models ball-nose tools only")
         self.R = float(tool["diameter_mm"]) / 2
@@ -332,10 +336,43 @@ class VirtualMachine:
         if len(self.path.pass_id) == 0:
             raise InputError(f"{self.path.program_id}: no cutting moves to machine")
         self.stock_h = stock_height_fn(stock)
+        self._stations(deflection_step_mm)
         self._engaged = self._engagement()
         self._defl_cache: dict = {}
 
-    # -- engagement of every pass at its mid point ------------------------------------------------
+    # -- deflection stations ----------------------------------------------------------------------
+    def _stations(self, step_mm: Optional[float]):
+        """The pieces of the passes the machine takes one engagement and deflection each for.
+
+        ``None``: one per pass (its mid point). A step: every pass cut into equal pieces of at most
+        ``step_mm``, so that the deflection's resolution along the path no longer follows the
+        program's blocks (a line cut in two at a via point, or written as one block, machines the
+        same; one deflection for a 4 mm climb whose foot is buried in a corner is not).
+        """
+        p = self.path
+        ln = p.length
+        if step_mm is None:
+            n = np.ones(len(ln), np.int64)
+        else:
+            if not step_mm > 0:
+                raise InputError(f"virtual machine: deflection_step_mm must be > 0, got {step_mm!r}")
+            n = np.maximum(1, np.ceil(ln / float(step_mm) - 1e-9).astype(np.int64))
+        row = np.repeat(np.arange(len(ln)), n)
+        k = np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)
+        f0, f1 = k / n[row], (k + 1) / n[row]
+        d = p.c1 - p.c0
+        self.st_pass = row                                   # station -> pass (row of the path)
+        self.st_first = np.cumsum(n) - n                     # pass -> its first station
+        self.st_count = n
+        self.st_mid = p.c0[row] + (0.5 * (f0 + f1))[:, None] * d[row]
+        self.st_s0 = p.s0[row] + f0 * ln[row]                # path length where each station begins
+
+    def _station_at(self, row, s_glob):
+        """Station of pass ``row`` at path length ``s_glob`` (clamped to the pass's own stations)."""
+        i = np.searchsorted(self.st_s0, s_glob, side="right") - 1
+        return np.clip(i, self.st_first[row], self.st_first[row] + self.st_count[row] - 1)
+
+    # -- engagement of every station at its mid point ---------------------------------------------
     def _edge_grid(self):
         """Micro-edge levels: N_Z over the ball (uniform in height), then the cylindrical side every
         SHANK_DZ_MM up to the tool's stick-out. Returns (zc, kappa, ds) per level."""
@@ -350,7 +387,7 @@ class VirtualMachine:
                 np.concatenate([ds, np.full(n_side, SHANK_DZ_MM)]))
 
     def _engagement(self, max_points: int = 400_000):
-        """Engaged micro-edges at each pass's mid point: (P, levels, N_PHI // 8) packed bits.
+        """Engaged micro-edges at each station's mid point: (S, levels, N_PHI // 8) packed bits.
 
         A micro-edge is engaged when it lies below the stock's top and outside the tool (ball and
         cylindrical side up to the stick-out) of every earlier pass. Only the levels below the
@@ -366,8 +403,10 @@ class VirtualMachine:
         d = p.c1 - p.c0
         P = len(d)
         ln = p.length
-        mid = 0.5 * (p.c0 + p.c1)
-        ang0 = np.arctan2(d[:, 1], d[:, 0])
+        st = self.st_pass
+        mid = self.st_mid
+        S = len(mid)
+        ang0 = np.arctan2(d[st, 1], d[st, 0])
         # levels that can touch the stock: below the highest stock top on the tool's outer ring
         ring = np.linspace(0.0, 2 * np.pi, 73)[:-1]
         top = np.max(self.stock_h(mid[:, None, 0] + R * np.cos(ring), mid[:, None, 1] + R * np.sin(ring)), axis=1)
@@ -381,16 +420,17 @@ class VirtualMachine:
         sub_ab = d[sub_owner] / nsub[sub_owner, None]
         sub_a = p.c0[sub_owner] + k_sub[:, None] * sub_ab
         tree = cKDTree((sub_a + 0.5 * sub_ab)[:, :2])
+        tree3 = cKDTree(sub_a + 0.5 * sub_ab)
         reach = R + 0.5 * float((ln / nsub).max()) + 1e-6
         side = self.stickout - R                                          # cylinder above the centre
-        eng = np.zeros((P, n_lev, (N_PHI + 7) // 8), np.uint8)
+        eng = np.zeros((S, n_lev, (N_PHI + 7) // 8), np.uint8)
         rad = np.where(kappa < np.pi / 2 - 1e-12, R * np.sin(kappa), R)
         dzc = zc - R                                                      # relative to the centre
         cost = np.cumsum(n_of * N_PHI)
         s0 = 0
-        while s0 < P:
+        while s0 < S:
             s1 = int(np.searchsorted(cost, (cost[s0 - 1] if s0 else 0) + max_points, side="right"))
-            s1 = min(max(s1, s0 + 1), P)
+            s1 = min(max(s1, s0 + 1), S)
             rows = np.repeat(np.arange(s0, s1), n_of[s0:s1])                 # (pass, level) pairs
             lev = np.arange(len(rows)) - np.repeat(np.cumsum(n_of[s0:s1]) - n_of[s0:s1], n_of[s0:s1])
             if len(rows):
@@ -402,10 +442,23 @@ class VirtualMachine:
                 inside = pts[:, 2] < self.stock_h(pts[:, 0], pts[:, 1]) - 1e-9
                 removed = np.zeros(len(pts), bool)
                 cand_idx = np.flatnonzero(inside)
+                if cand_idx.size and K_NEAR:
+                    # most points below the stock top were cut by a row just before: test the
+                    # nearest sub-segments in space first, and only the points none of those
+                    # removed against every earlier sub-segment in reach (the same answer: a
+                    # removal is a removal, and any sub-segment that removes a point is in reach)
+                    k_near = min(K_NEAR, len(sub_a))
+                    _, near = tree3.query(pts[cand_idx], k=k_near)
+                    pi = np.repeat(cand_idx, k_near)
+                    sj = near.reshape(-1)
+                    ok = sub_owner[sj] < st[owner[pi]]
+                    pi, sj = pi[ok], sj[ok]
+                    removed[pi[_inside_tool(pts[pi], sub_a[sj], sub_ab[sj], R, side)]] = True
+                    cand_idx = cand_idx[~removed[cand_idx]]
                 if cand_idx.size:
                     sdm = tree.sparse_distance_matrix(cKDTree(pts[cand_idx, :2]), reach, output_type="ndarray")
                     sj, pi = sdm["i"].astype(np.int64), cand_idx[sdm["j"]]
-                    ok = sub_owner[sj] < owner[pi]
+                    ok = sub_owner[sj] < st[owner[pi]]          # earlier passes only
                     pi, sj = pi[ok], sj[ok]
                     removed[pi[_inside_tool(pts[pi], sub_a[sj], sub_ab[sj], R, side)]] = True
                 E = (inside & ~removed).reshape(-1, N_PHI)
@@ -415,7 +468,8 @@ class VirtualMachine:
 
     # -- forces and deflection --------------------------------------------------------------------
     def deflection(self, runout_e_um: float = 0.0, runout_phase_deg: float = 0.0, scale: float = 1.0):
-        """(dx, dy) µm over one revolution per pass, at spindle angles θ_i = i·360/N_ROT."""
+        """(dx, dy) µm over one revolution per station (per pass without a deflection step), at
+        spindle angles θ_i = i·360/N_ROT."""
         key = (round(runout_e_um, 6), round(runout_phase_deg, 6))
         if key not in self._defl_cache:
             self._defl_cache[key] = self._deflection(runout_e_um, runout_phase_deg)
@@ -428,11 +482,12 @@ class VirtualMachine:
 
     def _deflection(self, e_um, phase_deg):
         fx, fy = self.forces(e_um, phase_deg)
-        return (simulate_deflection(fx, self.path.rpm, self.modes["x"]),
-                simulate_deflection(fy, self.path.rpm, self.modes["y"]))
+        rpm = self.path.rpm[self.st_pass]
+        return (simulate_deflection(fx, rpm, self.modes["x"]),
+                simulate_deflection(fy, rpm, self.modes["y"]))
 
     def forces(self, e_um: float = 0.0, phase_deg: float = 0.0):
-        """Machine-frame (fx, fy) in N on the tool over one revolution per pass (θ_i = i·360/N_ROT)."""
+        """Machine-frame (fx, fy) in N on the tool over one revolution per station (θ_i = i·360/N_ROT)."""
         p = self.path
         zc, kappa, ds = self._edge_grid()
         Z = self.flutes
@@ -443,15 +498,15 @@ class VirtualMachine:
         rho = self.flute_offsets(e_um + self.base_runout, phase_deg)
         cphi, sphi = np.cos(phi), np.sin(phi)
         ibin = np.minimum((phi / (2 * np.pi) * N_PHI).astype(np.int64), N_PHI - 1)
-        P = len(p.feed)
-        fx, fy = np.zeros((P, N_ROT)), np.zeros((P, N_ROT))
-        for s0 in range(0, P, 32):                               # memory bounded by the chunk
-            sl = slice(s0, min(s0 + 32, P))
+        S = len(self.st_pass)
+        fx, fy = np.zeros((S, N_ROT)), np.zeros((S, N_ROT))
+        for s0 in range(0, S, 32):                               # memory bounded by the chunk
+            sl = slice(s0, min(s0 + 32, S))
             fx[sl], fy[sl] = self._forces(sl, cphi, sphi, ibin, rho, kappa, ds)
         return fx, fy
 
     def _forces(self, sl, cphi, sphi, ibin, rho, kappa, ds):
-        """Machine-frame (fx, fy) on the tool over one revolution for the passes in ``sl``.
+        """Machine-frame (fx, fy) on the tool over one revolution for the stations in ``sl``.
 
         Chip of a micro-edge: the feed per tooth along the 3-D feed direction v, projected on the
         edge's outward normal u (ball: (sin κ cos φ, sin κ sin φ, −cos κ) in the feed frame; side:
@@ -459,8 +514,9 @@ class VirtualMachine:
         """
         p = self.path
         Z = self.flutes
-        fz = p.feed[sl] / (p.rpm[sl] * Z)                                    # (P,)
-        d = p.c1[sl] - p.c0[sl]
+        rows = self.st_pass[sl]
+        fz = p.feed[rows] / (p.rpm[rows] * Z)                                # (P,)
+        d = p.c1[rows] - p.c0[rows]
         alpha = np.arctan2(d[:, 2], np.hypot(d[:, 0], d[:, 1]))
         E = np.unpackbits(self._engaged[sl], axis=2, count=N_PHI).astype(bool)   # (P, levels, N_PHI)
         act = np.flatnonzero(E.any(axis=(0, 2)))                             # levels cut by some pass
@@ -528,6 +584,7 @@ class VirtualMachine:
                     t = t_star + dt0 + m * T
                     s_along = u * ln[row] + (t - t_star) * v
                     c, at = self._centre_at(p.s0[row] + s_along)
+                    st = self._station_at(at, p.s0[row] + s_along)
                     # the deflection of the pass the tool is on at that passage: a passage a
                     # revolution beyond the end of a short pass is on its neighbour, and after a
                     # pocket corner's 120 µm the next pass's own small deflection there over-cut.
@@ -540,8 +597,8 @@ class VirtualMachine:
                     i0 = np.floor(fi).astype(np.int64) % N_ROT
                     w = fi - np.floor(fi)
                     i1 = (i0 + 1) % N_ROT
-                    ddx = (1 - w) * dx_rev[at, i0] + w * dx_rev[at, i1]
-                    ddy = (1 - w) * dy_rev[at, i0] + w * dy_rev[at, i1]
+                    ddx = (1 - w) * dx_rev[st, i0] + w * dx_rev[st, i1]
+                    ddy = (1 - w) * dy_rev[st, i0] + w * dy_rev[st, i1]
                     off = np.stack([ddx, ddy, np.zeros_like(ddx)], 1) * 1e-3
                     off += rho[j] * np.stack([np.cos(alpha), np.sin(alpha), np.zeros_like(alpha)], 1)
                     radius = np.full(len(pts), R)

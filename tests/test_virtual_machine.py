@@ -199,3 +199,68 @@ def test_a_neighbour_round_a_corner_is_read_in_its_own_feed_frame():
     dy[1] = np.where(near(90.0 + lag) | near(270.0 + lag), -150.0, 0.0)
     vm._defl_cache[(0.0, 0.0)] = (dx, dy)
     assert vm.probe(np.array([[0.025, -5.0, 4.0]]), np.array([[0.0, 1.0, 0.0]]))[0] > -1.0
+
+
+def _passes(segments, feed=1000.0, rpm=10000.0):
+    """Consecutive cutting passes from ((x0, y0, z0), (x1, y1, z1)) pairs, timed at ``feed``."""
+    ln = [float(np.linalg.norm(np.subtract(b, a))) for a, b in segments]
+    t = np.cumsum([0.0] + [v / feed * 60.0 for v in ln])
+    col = lambda i, k: [s[i][k] for s in segments]  # noqa: E731
+    n = len(segments)
+    return pa.table({"program_id": ["t"] * n, "pass_id": pa.array(range(n), pa.int32()),
+                     "motion": pa.array([1] * n, pa.int8()),
+                     "x0_mm": col(0, 0), "y0_mm": col(0, 1), "z0_mm": col(0, 2),
+                     "x1_mm": col(1, 0), "y1_mm": col(1, 1), "z1_mm": col(1, 2),
+                     "feed_mm_min": [feed] * n, "spindle_rpm": [rpm] * n,
+                     "t_start_s": list(t[:-1]), "t_end_s": list(t[1:])})
+
+
+def test_a_deflection_step_makes_the_machined_surface_independent_of_the_blocks():
+    """A line x −10…10 beside an earlier pass that cleared its +y side up to x −2, machined on a
+    compliant machine as one block and as two (cut 0.5 mm from its start, as a via point does).
+    One deflection per pass takes the engagement at each block's mid point: the two programs machine
+    the line's first 0.5 mm differently, and the whole 20 mm block is cut with the full slot's
+    deflection. With stations every 0.5 mm both are cut alike, to rounding, and as the brute-force
+    reference is: the line written as 40 blocks of 0.5 mm on the machine with one deflection a block."""
+    soft = {"frf": {a: [{"fn_hz": 900.0, "zeta": 0.03, "k_n_per_um": 1.0}] for a in "xy"}}
+    box = {"box": [-30, -30, -20, 30, 30, 0]}
+    earlier = ((-10.0, 3.0, -1.0), (-2.0, 3.0, -1.0))
+    one = _passes([earlier, ((-10.0, 0.0, -1.0), (10.0, 0.0, -1.0))])
+    two = _passes([earlier, ((-10.0, 0.0, -1.0), (-9.5, 0.0, -1.0)), ((-9.5, 0.0, -1.0), (10.0, 0.0, -1.0))])
+    xs = np.linspace(-10.0, 10.0, 41)
+    forty = _passes([earlier] + [((a, 0.0, -1.0), (b, 0.0, -1.0)) for a, b in zip(xs[:-1], xs[1:])])
+    # the line's −y flank, 2 mm off its axis: the ball (centre z 4) meets y = −2 at z 4 − √21
+    x = np.arange(-9.9, 9.95, 0.1)
+    pts = np.stack([x, np.full_like(x, -2.0), np.full_like(x, 4.0 - np.sqrt(21.0))], 1)
+    nrm = np.tile(np.array([0.0, 2.0, np.sqrt(21.0)]) / 5.0, (len(x), 1))
+    e = {(name, step): VirtualMachine(prog, tool(), MAT, soft, box, deflection_step_mm=step).probe(pts, nrm)
+         for name, prog in (("one", one), ("two", two), ("forty", forty)) for step in (None, 0.5)}
+    assert np.abs(e["one", None] - e["two", None]).max() > 1.0          # per pass: the blocks matter
+    np.testing.assert_allclose(e["one", 0.5], e["two", 0.5], atol=1e-6)
+    np.testing.assert_allclose(e["one", 0.5], e["forty", None], atol=0.01)
+    np.testing.assert_allclose(e["forty", 0.5], e["forty", None], atol=1e-6)   # blocks ≤ the step
+    # the half-cleared stretch is cut with its own deflection only with the stations
+    cleared, full = (x > -8) & (x < -4), (x > 2) & (x < 8)
+    per_pass, stepped = e["one", None], e["one", 0.5]
+    assert abs(per_pass[cleared].mean() - per_pass[full].mean()) < 0.5
+    assert abs(stepped[cleared].mean() - stepped[full].mean()) > 2.0
+    np.testing.assert_allclose(stepped[full], per_pass[full], atol=0.5)   # the full slot's as before
+
+
+def test_the_engagement_is_the_same_with_and_without_testing_the_nearest_sub_segments_first(monkeypatch):
+    """The nearest-first test is a speed-up only: a zig-zag raster over a box, with climbs and
+    stepped depths, engages exactly the same micro-edges as every earlier sub-segment in reach."""
+    import stages.virtual_machine as vm_mod
+    segs, y = [], 0.0
+    for i in range(6):
+        z = -1.0 - 0.1 * i
+        a, b = ((-6.0, y, z), (6.0, y, z)) if i % 2 == 0 else ((6.0, y, z), (-6.0, y, z))
+        segs += [(a, b), (b, (b[0], y + 0.7, z + 0.3))]
+        y += 0.7
+    passes = _passes(segs)
+    box = {"box": [-30, -30, -20, 30, 30, 0]}
+    fast = VirtualMachine(passes, tool(), MAT, RIGID, box, deflection_step_mm=1.0)._engaged
+    monkeypatch.setattr(vm_mod, "K_NEAR", 0)
+    brute = VirtualMachine(passes, tool(), MAT, RIGID, box, deflection_step_mm=1.0)._engaged
+    assert np.unpackbits(brute).sum() > 1000            # the raster engages something
+    np.testing.assert_array_equal(fast, brute)
