@@ -65,7 +65,7 @@ def workflow(root: Path, max_iter: int, correct_opts=()) -> Path:
     return p
 
 
-def vm_errors(stock: Path, programs: dict) -> dict:
+def vm_errors(stock: Path, programs: dict, step_mm: float | None = None) -> dict:
     from stages.parse import parse_program
     from stages.split import split_blocks
     from stages.virtual_machine import VirtualMachine
@@ -78,7 +78,8 @@ def vm_errors(stock: Path, programs: dict) -> dict:
     def probe(text, k):
         b, _ = parse_program(text, "vm.nc", "cyl")
         machine = {"frf": {a: [{"fn_hz": 900, "zeta": 0.03, "k_n_per_um": k}] for a in "xy"}, "table": None}
-        return VirtualMachine(split_blocks(b, split), TOOL, MATERIAL, machine, str(stock)).probe(pts, n)
+        return VirtualMachine(split_blocks(b, split), TOOL, MATERIAL, machine, str(stock),
+                              deflection_step_mm=step_mm).probe(pts, n)
     ideal = probe(programs["original"], 1e9)
     out = {}
     for name, text in programs.items():
@@ -97,6 +98,9 @@ def main():
     ap.add_argument("--out", default="/tmp/closed_loop_vm")
     ap.add_argument("--correct", action="append", default=[], metavar="KEY=VALUE",
                     help="a workflow `correct` option for both runs (repeatable), e.g. accelerate=false")
+    ap.add_argument("--vm-step-mm", type=float, default=None,
+                    help="the virtual machine's deflection resolution along the path, mm (default: one "
+                         "deflection a pass)")
     args = ap.parse_args()
     root = Path(args.out)
     shutil.rmtree(root, ignore_errors=True)
@@ -115,7 +119,7 @@ def main():
             raise SystemExit(r.output)
         written[name] = (root / "out" / "nc" / "cyl.nc").read_bytes()
     rounds = json.loads((root / "out" / "run.json").read_text())["correct_rounds"]["cyl"]
-    res = vm_errors(root / "stock.stl", written)
+    res = vm_errors(root / "stock.stl", written, args.vm_step_mm)
     base = res["original"]["rms_um"]
     print(f"cylinder benchmark (Ø20, rc {RC:.2f} mm, {N_LEVELS + 1} levels q 0–{Q_MAX:g}°, k {K} N/µm); "
           f"pipeline run wall s: {timings}")
