@@ -50,12 +50,12 @@ def program() -> bytes:
     return "\n".join(lines).encode()
 
 
-def workflow(root: Path, max_iter: int, correct_opts=()) -> Path:
+def workflow(root: Path, max_iter: int, correct_opts=(), max_pass_mm: float = 40.0) -> Path:
     import yaml
     wf = {"name": "cyl", "programs": "nc/*.nc", "stock": "stock.stl", "tool": TOOL, "material": MATERIAL,
           "machine": {"frf": {a: [{"fn_hz": 900, "zeta": 0.03, "k_n_per_um": K}] for a in "xy"}},
           "render": {"backend": "auto", "px_per_mm": 20}, "prune": {"min_contact_deg": 0},
-          "split": {"max_pass_mm": 40.0}, "output": "out",
+          "split": {"max_pass_mm": max_pass_mm}, "output": "out",
           "correct": {"max_move_um": 100, "tol_um": 0.05, "max_iter": max_iter}}
     for kv in correct_opts:                      # e.g. accelerate=false
         k, _, v = kv.partition("=")
@@ -98,6 +98,8 @@ def main():
     ap.add_argument("--out", default="/tmp/closed_loop_vm")
     ap.add_argument("--correct", action="append", default=[], metavar="KEY=VALUE",
                     help="a workflow `correct` option for both runs (repeatable), e.g. accelerate=false")
+    ap.add_argument("--max-pass-mm", type=float, default=40.0,
+                    help="the pipeline's split.max_pass_mm (the machine cuts the levels as 40 mm passes)")
     ap.add_argument("--vm-step-mm", type=float, default=None,
                     help="the virtual machine's deflection resolution along the path, mm (default: one "
                          "deflection a pass)")
@@ -113,7 +115,7 @@ def main():
     written, timings = {"original": src}, {}
     for mi, name in ((1, "one round"), (3, "three rounds")):
         t0 = time.perf_counter()
-        r = CliRunner().invoke(cli, ["run", str(workflow(root, mi, args.correct)), "--workers", "1", "-q"], catch_exceptions=False)
+        r = CliRunner().invoke(cli, ["run", str(workflow(root, mi, args.correct, args.max_pass_mm)), "--workers", "1", "-q"], catch_exceptions=False)
         timings[name] = round(time.perf_counter() - t0, 1)
         if r.exit_code != 0:
             raise SystemExit(r.output)
