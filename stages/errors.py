@@ -45,7 +45,7 @@ from stages import cutting
 from stages.forces import list_values, match_passes, pick_entry, program_tool_number
 
 NAME = "errors"
-VERSION = "4"
+VERSION = "5"
 INPUTS = ("passes", "generating", "deflection")
 OUTPUTS = ("errors",)
 PARAMS = ("tool",)
@@ -244,6 +244,9 @@ def run(inputs: dict, params: dict) -> dict:
 
 
 PAIR_CHUNK = 50_000     # (point, neighbouring pass) pairs per chunk: bounds the deflection rows held
+# a neighbouring move that turns less than this from the pass's own direction carries the same cut
+# on (the split stage's pieces of one line, a corrected line's via pieces): see _deepest_passage
+CONTINUE_DEG = 10.0
 
 
 def _deepest_passage(res: dict, finished_by: np.ndarray, passes: pa.Table, rows: np.ndarray,
@@ -285,6 +288,7 @@ def _deepest_passage(res: dict, finished_by: np.ndarray, passes: pa.Table, rows:
         return
     d_own, t_own, _, _, n_own = pe.sweep_distance(gen_xyz, tip0[owner], tip1[owner], radius, rc, stick)
     s_c = s0[owner] + t_own * length[owner]
+    flutes = max(int(tool.get("flutes") or 1), 1)
     # C is the mean of surviving pixels, microns inside or off the pass's own nominal envelope (the
     # sagitta of the patch): the stand-offs are measured from C moved onto it
     c_on = gen_xyz - d_own[:, None] * n_own
@@ -293,8 +297,14 @@ def _deepest_passage(res: dict, finished_by: np.ndarray, passes: pa.Table, rows:
     r, j, ta, tb = pe.passage_pairs(owner, s_c, reach, s0, length, chain, has_defl)
     if r.size == 0:
         return
+    own_dir = tip1[owner] - tip0[owner]
+    own_dir /= np.maximum(np.linalg.norm(own_dir, axis=1, keepdims=True), 1e-12)
+    cos_continue = np.cos(np.radians(CONTINUE_DEG))
+    pos_own = tip0[owner] + t_own[:, None] * (tip1[owner] - tip0[owner])   # the tool nearest C
+
     def passage(sl):
-        """Stand-off, error parts and contact angle of the pairs ``sl``."""
+        """Stand-off, error parts and contact angle of the pairs ``sl``, and whether the pair is a
+        passage at all (see below)."""
         jj, rr = j[sl], r[sl]
         seg = tip1[jj] - tip0[jj]
         a, b = tip0[jj] + ta[sl, None] * seg, tip0[jj] + tb[sl, None] * seg
@@ -302,15 +312,30 @@ def _deepest_passage(res: dict, finished_by: np.ndarray, passes: pa.Table, rows:
         rel = c_on[rr] - (a + t[:, None] * (b - a))
         phi = np.degrees(np.arctan2(rel[:, 1], rel[:, 0]) - np.arctan2(seg[:, 1], seg[:, 0]))
         e = machining_error(dx_all[jj], dy_all[jj], phi, q, normal[rr], height, tool, profile)
-        return dist * 1000.0, e, q
+        # A neighbour that carries the pass's own line on (a piece of the same line, split for
+        # length or at a via point) is nearest C at its end, where the tool does not stop: the
+        # passages over C are spaced a tooth's feed apart along the line, the nearest within half
+        # of it from C's own position, and those farther off are the pass's own. Read at that end
+        # the neighbour's deflection comes at a spindle angle the azimuth of the offset away (on
+        # the seed's cylinder at q 10.7° a 0.25 mm offset turns it 7.7°, and the deflection there
+        # swings 100 µm in a revolution), and the deepest of them would make a line cut into
+        # 0.5 mm passes leave another surface than the line itself. Such a passage counts only
+        # within half a tooth's feed of the tool's position nearest C along the line, where it is
+        # real (``tests/test_passage_envelope.py``).
+        cont = np.einsum("ij,ij->i", seg, own_dir[rr]) > cos_continue * np.linalg.norm(seg, axis=1)
+        at_end = (t <= 1e-9) | (t >= 1.0 - 1e-9)
+        along = np.einsum("ij,ij->i", a + t[:, None] * (b - a) - pos_own[rr], own_dir[rr])
+        off_tooth = np.abs(along) > 0.5 * f_rev[rr] / flutes + 1e-6
+        real = ~(cont & at_end & off_tooth)
+        return dist * 1000.0, e, q, real
 
     # the deepest passage per point, over chunks of pairs (memory: a chunk's deflection rows)
     best_total = np.full(len(rows), np.inf)
     best_pair = np.full(len(rows), -1, np.int64)
     for c0 in range(0, r.size, PAIR_CHUNK):
         sl = np.arange(c0, min(c0 + PAIR_CHUNK, r.size))
-        off, e, _ = passage(sl)
-        total = off + e["err_um"]
+        off, e, _, real = passage(sl)
+        total = np.where(real, off + e["err_um"], np.inf)
         o = np.lexsort((total, r[sl]))
         first = np.concatenate([[True], r[sl][o][1:] != r[sl][o][:-1]])
         cb = o[first]
@@ -322,7 +347,7 @@ def _deepest_passage(res: dict, finished_by: np.ndarray, passes: pa.Table, rows:
     if not k.size:
         return
     w = best_pair[k]
-    off, e, q = passage(w)
+    off, e, q, _ = passage(w)
     res["err_deflection_um"][k] = e["err_deflection_um"] + off   # the stand-off counts as material left
     res["defl_x_um"][k] = e["defl_x_um"]
     res["defl_y_um"][k] = e["defl_y_um"]

@@ -136,3 +136,42 @@ def test_short_pass_is_finished_by_the_deepest_neighbouring_passage(offset_um, b
     parts = out.column("err_deflection_um").to_numpy() + out.column("err_shape_um").to_numpy() \
         + out.column("err_runout_um").to_numpy()
     np.testing.assert_allclose(parts, out.column("err_um").to_numpy(), atol=1e-12)
+
+
+def test_a_line_cut_into_pieces_leaves_the_surface_of_the_line():
+    """A wall finished along +x (as above) by one 10 mm line, and by the same line cut into 0.5 mm
+    passes, every pass with the same deflection, which swings steeply with the spindle angle:
+    dy(θ) = 30 + 60·sin 6θ µm (away from the wall). With the helix 0, flute j passes the contact
+    (φ = −90° from the feed) at θ = 90° − 180°·j: dy = 30 µm for both flutes, the error of every
+    pass. The pieces' neighbours are the same line: read at their ends, 0.25 mm off, the contact's
+    azimuth turns by atan(0.25/5) = 2.9° and the deflection there is 30 ∓ 18 µm, 12 + 6.25 µm of
+    stand-off under 30. Those ends are more than half a tooth's feed (0.1 mm) from the tool's
+    position nearest C, where the tool carries on along the line: no passage there."""
+    n_rot = 720
+    theta = np.arange(n_rot) * 360.0 / n_rot
+    dy = 30.0 + 60.0 * np.sin(np.radians(6 * theta))
+    tool = {"type": "ball", "diameter_mm": 10.0, "flutes": 2, "helix_deg": 0.0, "stickout_mm": 20.0,
+            "runout_um": 0.0}
+    src = b"%\nO1\nT1 M6\nS1000 M3\nG0 X0 Y0 Z5\nG1 Z0 F400\nX10\nG0 Z5\nM30\n%\n"
+    blocks, _ = parse_program(src, "line.nc", "w")
+    for max_pass in (50.0, 0.5):
+        split = {"split": {"chord_tol_mm": 0.001, "max_pass_mm": max_pass, "merge_max_mm": 0.0},
+                 "machine": {"rapid_mm_min": 30000.0}, "tool": {"type": "ball", "diameter_mm": 10.0}}
+        passes = split_blocks(blocks, split)
+        col = lambda c: passes.column(c).to_numpy()  # noqa: E731
+        line = (col("motion") == 1) & (col("z0_mm") == 0) & (col("z1_mm") == 0)
+        pid = col("pass_id")[line].astype(np.int32)
+        xm = 0.5 * (col("x0_mm") + col("x1_mm"))[line]
+        k = len(pid)
+        assert k == (1 if max_pass > 10 else 20)
+        defl = pa.table({"program_id": ["w"] * k, "pass_id": pa.array(pid, pa.int32()),
+                         "rotation_deg": [list(theta)] * k, "dx_um": [[0.0] * n_rot] * k,
+                         "dy_um": [list(dy)] * k})
+        gen = pa.table({"program_id": ["w"] * k, "pass_id": pa.array(pid, pa.int32()),
+                        "gen_x_mm": xm, "gen_y_mm": np.full(k, -5.0), "gen_z_mm": np.full(k, 5.0),
+                        "rotation_deg": np.full(k, -90.0), "contact_deg": np.full(k, 90.0),
+                        "nx": np.zeros(k), "ny": np.ones(k), "nz": np.zeros(k),
+                        "n_px": pa.array(np.full(k, 100), pa.int32()), "view": ["below"] * k})
+        out = errors.run({"passes": passes, "generating": gen, "deflection": defl}, {"tool": tool})["errors"]
+        np.testing.assert_allclose(out.column("err_um").to_numpy(), 30.0, atol=1e-6)
+        assert out.column("finished_by").to_pylist() == out.column("pass_id").to_pylist()
