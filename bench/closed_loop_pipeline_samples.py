@@ -352,6 +352,11 @@ def main():
         import pyarrow.parquet as pq
         errs = pq.read_table(root / "out" / "tables" / "errors", columns=["pass_id", "err_um"])
         wf_used = yaml.safe_load(next(root.glob("wf*.yaml")).read_text())
+        # the machine cuts the program as the base workflow splits it, whatever `--set split.*` gave
+        # the pipeline: finer predicted passes must not change the machine, its probe points or the
+        # cache of the original's machined error
+        base_split = yaml.safe_load(args.workflow.read_text())["split"]
+        wf_used["split"].update({k: base_split[k] for k in VM_SPLIT})
         res = vm_errors(w, written, wf_used, args.spacing, cache=Path(args.out) / "vm_cache",
                         dump=root / "points.parquet",
                         predicted=(errs.column("pass_id").to_numpy(), errs.column("err_um").to_numpy()),

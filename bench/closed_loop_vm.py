@@ -10,6 +10,10 @@ prediction code) and probed on the design cylinder; the error is measured agains
 program machined on a rigid machine (so the cusps, which no correction removes, are not counted).
 
     python3 bench/closed_loop_vm.py [--out /tmp/closed_loop_vm] [--correct KEY=VALUE ...]
+        [--max-pass-mm MM] [--vm-step-mm MM] [--workers N] [--rounds 1,3] [--keep]
+
+``--keep`` reuses the pipeline cache of an earlier run in ``--out`` (same options), so a run that
+was cut off resumes where it stopped.
 """
 from __future__ import annotations
 
@@ -103,19 +107,25 @@ def main():
     ap.add_argument("--vm-step-mm", type=float, default=None,
                     help="the virtual machine's deflection resolution along the path, mm (default: one "
                          "deflection a pass)")
+    ap.add_argument("--workers", type=int, default=1, help="Dask workers of the pipeline runs")
+    ap.add_argument("--rounds", default="1,3", help="round counts of the corrected programs, comma-separated")
+    ap.add_argument("--keep", action="store_true", help="keep the pipeline's cache of an earlier run in --out")
     args = ap.parse_args()
     root = Path(args.out)
-    shutil.rmtree(root, ignore_errors=True)
-    (root / "nc").mkdir(parents=True)
+    if not args.keep:
+        shutil.rmtree(root, ignore_errors=True)
+    (root / "nc").mkdir(parents=True, exist_ok=True)
     src = program()
     (root / "nc" / "cyl.nc").write_bytes(src)
     stock = trimesh.creation.cylinder(radius=RC + DEPTH, height=LENGTH, sections=720)
     stock.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
     stock.export(root / "stock.stl")
     written, timings = {"original": src}, {}
-    for mi, name in ((1, "one round"), (3, "three rounds")):
+    for mi in sorted(int(r) for r in args.rounds.split(",")):
+        name = f"{mi} round{'s' if mi > 1 else ''}"
         t0 = time.perf_counter()
-        r = CliRunner().invoke(cli, ["run", str(workflow(root, mi, args.correct, args.max_pass_mm)), "--workers", "1", "-q"], catch_exceptions=False)
+        r = CliRunner().invoke(cli, ["run", str(workflow(root, mi, args.correct, args.max_pass_mm)),
+                                     "--workers", str(args.workers), "-q"], catch_exceptions=False)
         timings[name] = round(time.perf_counter() - t0, 1)
         if r.exit_code != 0:
             raise SystemExit(r.output)
@@ -126,7 +136,8 @@ def main():
     print(f"cylinder benchmark (Ø20, rc {RC:.2f} mm, {N_LEVELS + 1} levels q 0–{Q_MAX:g}°, k {K} N/µm); "
           f"pipeline run wall s: {timings}")
     for r in rounds:
-        print(f"  round {r['round']}: predicted deviation from the original surface RMS {r['rms_dev_um']:.3f} um "
+        dev = "–" if r["rms_dev_um"] is None else f"{r['rms_dev_um']:.3f}"   # only the first round has one
+        print(f"  round {r['round']}: predicted deviation from the original surface RMS {dev} um "
               f"({r['n_errors']} passes), max change {r['max_change_um']:.3f} um")
     for name, v in res.items():
         print(f"  virtual machine, {name:>12}: error RMS {v['rms_um']:.3f} um ({100 * v['rms_um'] / base:.1f} % of before), "
