@@ -5,7 +5,8 @@ little change in direction or short length may be merged into one pass, long mov
 Here:
 
 - arcs (G2/G3, helical included) become chords whose sagitta stays within ``split.chord_tol_mm``;
-- cutting moves longer than ``split.max_pass_mm`` are cut into equal pieces (with
+- cutting moves longer than ``split.max_pass_mm`` (by more than :data:`PIECE_SLACK` of it, so that a
+  corrected program splits as the original did) are cut into equal pieces (with
   ``split.end_piece_mm`` > 0, after a piece that long at each end);
 - with ``split.corner_piece_mm`` > 0, a G1 line that meets another G1 line at a path corner (the
   direction turns by more than :data:`CORNER_TURN_DEG`) gets a piece that long at that end, if its
@@ -34,7 +35,7 @@ import pyarrow as pa
 from stages.parse import ARC_CCW, ARC_CW, DWELL, RAPID, _PLANE_AXES
 
 NAME = "split"
-VERSION = "3"
+VERSION = "4"
 INPUTS = ("parse_status", "blocks")
 OUTPUTS = ("passes", "programs")
 PARAMS = ("split", "machine.rapid_mm_min", "tool")
@@ -132,8 +133,25 @@ def corner_ends(p0, p1, is_line, turn_deg=None):
     return at_start, at_end
 
 
+# A move up to this fraction of a piece longer than a whole number of pieces keeps that number.
+# Why: a corrected program's moves are a few µm longer than the original's (a via point moved
+# 20 µm off a 0.5 mm piece's line lengthens it by 0.4 µm), and with no slack every such piece of a
+# line cut into exact pieces became two: the passes (and, through the via points, the blocks) of
+# round 2 were no longer those of round 1, and the prediction jumped between the rounds (the
+# cylinder's 0.5 mm passes: 727 → 847 → 940 predicted passes over three rounds).
+PIECE_SLACK = 0.05
+
+
+def piece_count(length, max_len):
+    """Equal pieces of at most ``max_len`` (within :data:`PIECE_SLACK`) a move of ``length`` is cut into."""
+    return np.maximum(1, np.ceil(np.asarray(length, float) / max_len - PIECE_SLACK)).astype(np.int64)
+
+
 def split_long(owner, p0, p1, is_cut, max_len, end_len=0.0, corner_len=0.0, corner=None):
     """Cut cutting segments longer than ``max_len`` into equal pieces.
+
+    "Longer" allows :data:`PIECE_SLACK` of a piece: a 0.51 mm move with ``max_len`` 0.5 mm is one
+    piece, a 1.02 mm move two (:func:`piece_count`).
 
     With ``end_len`` > 0 such a segment first gets a piece of ``end_len`` at each end and its middle
     is cut into equal pieces (``split.end_piece_mm``). With ``corner_len`` > 0 a cutting segment
@@ -148,7 +166,7 @@ def split_long(owner, p0, p1, is_cut, max_len, end_len=0.0, corner_len=0.0, corn
     of a cut one.
     """
     length = np.linalg.norm(p1 - p0, axis=1)
-    long_ = is_cut & (length > max_len * (1 + 1e-9))
+    long_ = is_cut & (piece_count(length, max_len) > 1)
     ends = long_ & (end_len > 0) & (length > 2 * end_len * (1 + 1e-9))
     s0 = np.where(ends, float(end_len), 0.0)
     s1 = s0.copy()
@@ -161,7 +179,7 @@ def split_long(owner, p0, p1, is_cut, max_len, end_len=0.0, corner_len=0.0, corn
         s1 = np.where(c1 & fits, float(corner_len), s1)
     h0, h1 = (s0 > 0).astype(np.int64), (s1 > 0).astype(np.int64)
     middle = length - s0 - s1
-    k_mid = np.where(long_, np.maximum(1, np.ceil(middle / max_len - 1e-9)), 1).astype(np.int64)
+    k_mid = np.where(long_, piece_count(middle, max_len), 1)
     k = k_mid + h0 + h1
     idx = np.repeat(np.arange(owner.size), k)
     first = np.concatenate(([0], np.cumsum(k)[:-1]))

@@ -74,6 +74,7 @@ SHANK_DZ_MM = 0.25  # micro-edge length on the cylindrical side (walls: mm-long 
 # seed's 51-level cylinder bench: 16 % with 3) -- kept switchable, see the issue-5 note
 PROBE_PASSES = 1
 PASSAGES = (-1, 0, 1)   # spindle revolutions around the nominal passage that cut each point
+STEP_SLACK = 0.05       # fraction of a deflection step a pass may exceed a whole number of steps by
 K_NEAR = 8              # engagement: sub-segments tested first for each micro-edge (a speed-up only; 0: none)
 
 EFFECTS = {
@@ -345,9 +346,10 @@ class VirtualMachine:
         """The pieces of the passes the machine takes one engagement and deflection each for.
 
         ``None``: one per pass (its mid point). A step: every pass cut into equal pieces of at most
-        ``step_mm``, so that the deflection's resolution along the path no longer follows the
-        program's blocks (a line cut in two at a via point, or written as one block, machines the
-        same; one deflection for a 4 mm climb whose foot is buried in a corner is not).
+        ``step_mm`` (within :data:`STEP_SLACK`), so that the deflection's resolution along the path
+        no longer follows the program's blocks (a line cut in two at a via point, or written as one
+        block, machines the same; one deflection for a 4 mm climb whose foot is buried in a corner
+        is not).
         """
         p = self.path
         ln = p.length
@@ -356,7 +358,11 @@ class VirtualMachine:
         else:
             if not step_mm > 0:
                 raise InputError(f"virtual machine: deflection_step_mm must be > 0, got {step_mm!r}")
-            n = np.maximum(1, np.ceil(ln / float(step_mm) - 1e-9).astype(np.int64))
+            # a pass up to STEP_SLACK of a piece longer than a whole number of pieces keeps that
+            # number: the machine's resolution must not jump where a via point moved by a µm
+            # lengthens a 0.5 mm pass by a nanometre (it doubled there, and at the cylinder's stock
+            # end, where the deflection falls 6 µm a piece, the surface jumped by µm)
+            n = np.maximum(1, np.ceil(ln / float(step_mm) - STEP_SLACK).astype(np.int64))
         row = np.repeat(np.arange(len(ln)), n)
         k = np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)
         f0, f1 = k / n[row], (k + 1) / n[row]

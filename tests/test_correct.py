@@ -1385,6 +1385,33 @@ def test_via_points_are_written_as_inserted_lines_where_the_errors_differ_along_
     assert write_program(_VIA_PROGRAM, vb, c) == _VIA_PROGRAM
 
 
+def test_a_corrected_program_splits_into_the_passes_of_the_original(monkeypatch):
+    """Deliver 4's reverse check, through the split: the 20 mm line cut into four 5 mm passes, its
+    via points moved 35, 25, 15 µm across it, is parsed and split again into the same passes, each
+    end within the largest move (40 µm) of the original's. The moved pieces are 5.00001 mm long;
+    rounding any excess up to a piece more cut each in two, and round 2 predicted other passes."""
+    import stages.split as split_mod
+    blocks, _ = parse_program(_VIA_PROGRAM, "v", "p")
+    vb = via_blocks(_VIA_PROGRAM, blocks, 5.0)
+    passes = split_blocks(vb, SPLIT)
+    cut = passes.column("motion").to_numpy() != 0
+    line = passes.column("line_no").to_numpy()
+    e = np.zeros(passes.num_rows)
+    e[line == 8] = [40.0, 30.0, 20.0, 10.0]
+    err = _errors(passes, e, np.tile([0, -1.0, 0], (passes.num_rows, 1))).filter(pa.array(cut & (line == 8)))
+    out = write_program(_VIA_PROGRAM, vb, correct_once(vb, passes, err, {"correct": {}}))
+    ends = ("x0_mm", "y0_mm", "z0_mm", "x1_mm", "y1_mm", "z1_mm")
+
+    def again():
+        return split_blocks(parse_program(out, "v", "p")[0], SPLIT)
+    got = again()
+    assert got.num_rows == passes.num_rows
+    moved = np.stack([got.column(c).to_numpy() - passes.column(c).to_numpy() for c in ends], 1)
+    assert np.abs(moved).max() <= 0.040 + 1e-9
+    monkeypatch.setattr(split_mod, "PIECE_SLACK", 1e-9)  # the rule before: any excess is a piece more
+    assert again().num_rows > passes.num_rows
+
+
 def test_via_lines_follow_the_program_style():
     # CRLF, no spaces, G01: the inserted lines are written the same way
     text = b"\r\n".join([b"%", b"O0012", b"G90G21G17", b"T1M6", b"S1000M3", b"G0X0.Y0.Z5.", b"G01Z0.F100",

@@ -247,6 +247,36 @@ def test_a_deflection_step_makes_the_machined_surface_independent_of_the_blocks(
     np.testing.assert_allclose(stepped[full], per_pass[full], atol=0.5)   # the full slot's as before
 
 
+def test_moving_via_points_by_a_micrometre_moves_the_machined_surface_by_about_that(monkeypatch):
+    """The line of the test above written as 40 blocks of 0.5 mm (a program with a via point every
+    0.5 mm), and the same with its via points moved ±1 µm in z, alternately (a corrected program):
+    every block grows by 4 nm. The machine with a deflection every 0.5 mm must cut the moved program
+    within about the move of the other (|n_z| = 0.92, the engagement's change is a few nm), not at
+    another resolution: with a piece count rounded up for a nanometre over the step, every block is
+    cut into two pieces and, where the earlier pass's clearing ends (x −2), the surface jumps."""
+    import stages.virtual_machine as vm_mod
+    soft = {"frf": {a: [{"fn_hz": 900.0, "zeta": 0.03, "k_n_per_um": 1.0}] for a in "xy"}}
+    box = {"box": [-30, -30, -20, 30, 30, 0]}
+    earlier = ((-10.0, 3.0, -1.0), (-2.0, 3.0, -1.0))
+    xs = np.linspace(-10.0, 10.0, 41)
+    zs = -1.0 + 0.001 * np.where(np.arange(41) % 2 == 0, 1.0, -1.0)
+    zs[[0, -1]] = -1.0
+    straight = _passes([earlier] + [((a, 0.0, -1.0), (b, 0.0, -1.0)) for a, b in zip(xs[:-1], xs[1:])])
+    moved = _passes([earlier] + [((a, 0.0, za), (b, 0.0, zb))
+                                 for a, b, za, zb in zip(xs[:-1], xs[1:], zs[:-1], zs[1:])])
+    x = np.arange(-9.9, 9.95, 0.1)
+    pts = np.stack([x, np.full_like(x, -2.0), np.full_like(x, 4.0 - np.sqrt(21.0))], 1)
+    nrm = np.tile(np.array([0.0, 2.0, np.sqrt(21.0)]) / 5.0, (len(x), 1))
+
+    def gap():
+        e = [VirtualMachine(prog, tool(), MAT, soft, box, deflection_step_mm=0.5).probe(pts, nrm)
+             for prog in (straight, moved)]
+        return np.abs(e[1] - e[0]).max()
+    assert gap() <= 0.92 + 0.1
+    monkeypatch.setattr(vm_mod, "STEP_SLACK", 1e-9)     # the rule before: any excess is a piece more
+    assert gap() > 1.3
+
+
 def test_the_engagement_is_the_same_with_and_without_testing_the_nearest_sub_segments_first(monkeypatch):
     """The nearest-first test is a speed-up only: a zig-zag raster over a box, with climbs and
     stepped depths, engages exactly the same micro-edges as every earlier sub-segment in reach."""
