@@ -32,7 +32,7 @@ from stages import geometry as geo
 from stages.render import View, make_renderer
 
 NAME = "cut_filter"
-VERSION = "4"
+VERSION = "5"
 INPUTS = ("passes", "stock")
 OUTPUTS = ("cut_filter",)
 PARAMS = ("tool", "render")

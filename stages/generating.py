@@ -63,7 +63,7 @@ from stages.cut_filter import (PASSES_PER_DRAW, coarse_tolerance, fine_tolerance
 from stages.render import Scene, Snapshot, View
 
 NAME = "generating"
-VERSION = "15"
+VERSION = "16"
 INPUTS = ("passes", "stock", "cut_filter", "angle_prune", "nominal")
 OUTPUTS = ("generating", "engagement")
 PARAMS = ("tool", "render")

@@ -306,6 +306,16 @@ def envelope_copies(mesh: EnvelopeMesh, tips, feed_deg=None, view_dir=None):
     return tris, mesh.q_deg[sel], mesh.theta_deg[sel], owner
 
 
+# Faces whose normal is within this (radians) of perpendicular to a pass count as parallel to it,
+# in the silhouette (sweep_bands) and in the joint lunes (joint_lunes). Why: the faces of a copy
+# that lie along the motion are covered by neither band of an exact pass but by the lunes at its
+# joints. With a tolerance of 1e-9 a chain of passes turned by 2e-9 rad (a corrected program's via
+# points: float noise of the moves) had a silhouette one face over and lunes without those faces,
+# and its sweeps lost their cut pixels to the next pass (the cylinder's 0.5 mm passes: 105 of 727
+# passes "not cutting" in round 2). 1e-6 rad is far below the mesh's facets (~1e-2 rad).
+PARALLEL_TOL = 1e-6
+
+
 def sweep_bands(mesh: EnvelopeMesh, p0, p1, view_dir=None):
     """Faces swept by the silhouette edges of the envelope moving from ``p0`` to ``p1``.
 
@@ -318,9 +328,12 @@ def sweep_bands(mesh: EnvelopeMesh, p0, p1, view_dir=None):
     p1 = np.atleast_2d(np.asarray(p1, float))
     u = p1 - p0
     s = mesh.face_normals @ u.T                                     # (nf, k)
+    # a face within PARALLEL_TOL of parallel to the motion counts as parallel (s = 0), so that a
+    # pass turned by a nanometre has the silhouette of the exact one (see PARALLEL_TOL)
+    eps = PARALLEL_TOL * np.maximum(np.linalg.norm(u, axis=1), 1e-30)[None]
+    s = np.where(np.abs(s) <= eps, 0.0, s)
     sa, sb = s[mesh.edge_faces[:, 0]], s[mesh.edge_faces[:, 1]]     # (ne, k)
-    eps = 1e-9 * np.maximum(np.linalg.norm(u, axis=1), 1e-30)[None]
-    sil = (sa * sb <= 0) & ~((np.abs(sa) <= eps) & (np.abs(sb) <= eps))
+    sil = (sa * sb <= 0) & ~((sa == 0) & (sb == 0))
     sil &= (np.linalg.norm(u, axis=1) > 1e-12)[None]
     e, k = np.nonzero(sil)
     if view_dir is not None:
@@ -417,7 +430,7 @@ def joint_lunes(mesh: EnvelopeMesh, seg0, seg1, drop_end, view_dir=None, chunk: 
     owners, sels = [], []
     for a in range(0, len(idx), chunk):                                # bounded (chunk × m) masks
         j = idx[a:a + chunk]
-        lune = (u[j] @ nrm.T >= -1e-9) & (u[j + 1] @ nrm.T <= 1e-9)
+        lune = (u[j] @ nrm.T >= -PARALLEL_TOL) & (u[j + 1] @ nrm.T <= PARALLEL_TOL)
         o, t = np.nonzero(lune)
         owners.append(j[o])
         sels.append(cand[t])
