@@ -94,7 +94,7 @@ import pyarrow as pa
 from stages import InputError
 
 NAME = "correct"
-VERSION = "13"
+VERSION = "14"
 INPUTS = ("blocks", "passes", "errors", "generating")
 OUTPUTS = ("corrected",)
 # only the clip limit and the relaxation of rounds 2… change the table; tol_um and max_iter steer
@@ -128,6 +128,15 @@ REFINE_MAX_RATIO = 2.0
 # path (a ball rounding a wall foot: 2–3 vertices over 90°, a floor pass turning up a wall) turns
 # by far more and keeps the refinement that realises both errors there.
 PATH_TURN_DEG = 10.0
+# where the path runs on through a vertex within this angle (a via point, or the vertex between
+# two pieces of one line), the vertex takes the para 0084 move alone, without the refinement: its
+# two passes finish one surface there, so the difference of their predicted normals is the
+# prediction's scatter (the seed's cylinder: 0.4–0.9° between the 0.5 mm pieces of one level), and
+# realising their two errors (the deflection changing along the line, as where the stock runs out
+# in front of the ball) by the refinement turned that scatter into slides across the line (14–27 µm
+# on the cylinder's levels at the stock's end, another each round) where each piece's error is
+# realised by the moves of its own two ends anyway
+LINE_TURN_DEG = 3.0
 # smallest step fraction of a vertex whose rounds do not contract (see correct_once)
 MIN_RELAX = 1.0 / 16
 # rounds 2…: the secant step (``correct.accelerate``) takes at most this many times the plain step
@@ -212,7 +221,8 @@ def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True, along_path=N
     err_a, err_b : (v,) float, errors of the two passes, µm (positive = material left)
     n_a, n_b : (v, 3) float, unit surface normals (out of material)
     has_a, has_b : (v,) bool, whether the pass has a prediction (else it does not count)
-    refine : bool, add the least-squares refinement (False: the para 0084 move alone)
+    refine : bool or (v,) bool, add the least-squares refinement (False: the para 0084 move alone;
+        per vertex with an array)
     along_path : (v, 3) float or None, unit path direction the refinement must not move along
         (zero rows: no restriction)
     across_path : bool, solve the refinement with the normals projected across ``along_path``
@@ -240,7 +250,8 @@ def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True, along_path=N
     ok &= den > 1e-12
     s = np.where(ok, num / np.where(ok, den, 1.0), 0.0)
     m = s[:, None] * d
-    if not refine:
+    refine = np.broadcast_to(np.asarray(refine, bool), err_a.shape)
+    if not refine.any():
         return m
     # residual of both errors after the para 0084 move, solved in the plane of the two normals:
     # G = N Nᵀ (2×2) in its eigenbasis, each mode μ taken with the filter μ²/(μ² + μ_tol²), so
@@ -270,7 +281,7 @@ def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True, along_path=N
         extra -= np.einsum("ij,ij->i", extra, along_path)[:, None] * along_path
     cap = REFINE_MAX_RATIO * np.maximum(np.abs(wa * err_a), np.abs(wb * err_b))
     size = np.linalg.norm(extra, axis=1)
-    extra *= np.minimum(1.0, cap / np.maximum(size, 1e-30))[:, None]
+    extra *= (np.minimum(1.0, cap / np.maximum(size, 1e-30)) * refine)[:, None]
     return m + extra
 
 
@@ -513,17 +524,23 @@ def _errors_per_pass(passes: pa.Table, errors: pa.Table):
     return err, nrm, has, defl
 
 
-def _straight_through(pstart, pend):
-    """(P + 1, 3) unit path direction at every node (start of pass k, end of the last) where the
-    path turns there by less than :data:`PATH_TURN_DEG`; zero rows at corners and at the ends."""
+def _node_turn_cos(pstart, pend):
+    """(P + 1,) cosine of the path's turn at every node (start of pass k, end of the last; 0 at
+    the ends) and the (P + 1, 3) sum of the unit directions in and out."""
     d = pend - pstart
     length = np.linalg.norm(d, axis=1)
     d = d / np.where(length > 1e-12, length, np.inf)[:, None]
     d_in = np.vstack([np.zeros((1, 3)), d])            # the pass ending at the node
     d_out = np.vstack([d, np.zeros((1, 3))])           # the pass starting there
-    straight = np.einsum("ij,ij->i", d_in, d_out) > np.cos(np.radians(PATH_TURN_DEG))
-    t = d_in + d_out
-    t /= np.maximum(np.linalg.norm(t, axis=1), 1e-12)[:, None]
+    return np.einsum("ij,ij->i", d_in, d_out), d_in + d_out
+
+
+def _straight_through(pstart, pend):
+    """(P + 1, 3) unit path direction at every node (start of pass k, end of the last) where the
+    path turns there by less than :data:`PATH_TURN_DEG`; zero rows at corners and at the ends."""
+    cos_turn, t = _node_turn_cos(pstart, pend)
+    straight = cos_turn > np.cos(np.radians(PATH_TURN_DEG))
+    t = t / np.maximum(np.linalg.norm(t, axis=1), 1e-12)[:, None]
     return np.where(straight[:, None], t, 0.0)
 
 
@@ -694,6 +711,7 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
         d_mean = (db * has_b[:, None] + da * has_a[:, None]) / np.maximum(has_b.astype(float) + has_a, 1.0)[:, None]
         node_move = vertex_moves(eb - np.einsum("ij,ij->i", d_mean, nb_), nb_, has_b,
                                  ea - np.einsum("ij,ij->i", d_mean, na_), na_, has_a,
+                                 refine=_node_turn_cos(pstart, pend)[0] <= np.cos(np.radians(LINE_TURN_DEG)),
                                  along_path=_straight_through(pstart, pend),
                                  across_path=bool(p["refine_across_path"]),
                                  normal_tol_deg=_normal_tol(p)) - d_mean
