@@ -1412,6 +1412,39 @@ def test_a_corrected_program_splits_into_the_passes_of_the_original(monkeypatch)
     assert again().num_rows > passes.num_rows
 
 
+def test_a_via_point_between_pieces_of_one_line_moves_along_the_mean_normal(monkeypatch):
+    """The 20 mm line cut into four 5 mm passes, errors 40, 30, 20, 10 µm with the passes' normals
+    scattered ±0.45° about −y (tilted in the y–z plane, across the line: a prediction's scatter on
+    one surface). Each via point moves along the mean of its two normals by the mean of its two
+    errors (para 0084; closed form 35, 25, 15 µm) and slides across the line by less than 0.5 µm;
+    with the least-squares refinement at these vertices they slid ±25 µm in z."""
+    import stages.correct as correct_mod
+    blocks, _ = parse_program(_VIA_PROGRAM, "v", "p")
+    vb = via_blocks(_VIA_PROGRAM, blocks, 5.0)
+    passes = split_blocks(vb, SPLIT)
+    cut = passes.column("motion").to_numpy() != 0
+    line = passes.column("line_no").to_numpy()
+    on = cut & (line == 8)
+    tilt = np.radians(0.45) * np.where(np.arange(on.sum()) % 2, 1.0, -1.0)
+    nrm = np.tile([0.0, -1.0, 0.0], (passes.num_rows, 1))
+    nrm[on] = np.stack([np.zeros_like(tilt), -np.cos(tilt), np.sin(tilt)], 1)
+    e = np.zeros(passes.num_rows)
+    e[on] = [40.0, 30.0, 20.0, 10.0]
+    err = _errors(passes, e, nrm).filter(pa.array(on))
+
+    def via_moves():
+        c = correct_once(vb, passes, err, {"correct": {}})
+        lines = c.column("line_no").to_numpy()
+        new = np.stack([c.column(k).to_numpy() - c.column(o).to_numpy()
+                        for k, o in (("x_new_mm", "x_mm"), ("y_new_mm", "y_mm"), ("z_new_mm", "z_mm"))], 1)
+        return new[lines == 8][:3] * 1000.0               # the three via points of line 8, µm
+    m = via_moves()
+    np.testing.assert_allclose(m[:, 1], [35.0, 25.0, 15.0], atol=0.01)   # along +y (against −n)
+    assert np.abs(m[:, 2]).max() < 0.5 and np.abs(m[:, 0]).max() < 1e-9
+    monkeypatch.setattr(correct_mod, "LINE_TURN_DEG", 0.0)              # refined everywhere
+    assert np.abs(via_moves()[:, 2]).max() > 5.0
+
+
 def test_via_lines_follow_the_program_style():
     # CRLF, no spaces, G01: the inserted lines are written the same way
     text = b"\r\n".join([b"%", b"O0012", b"G90G21G17", b"T1M6", b"S1000M3", b"G0X0.Y0.Z5.", b"G01Z0.F100",
