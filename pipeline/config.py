@@ -109,7 +109,7 @@ class Split(_Strict):
     """Seed para 0051: how NC motion becomes passes."""
 
     chord_tol_mm: float = Field(0.001, gt=0, le=1.0)  # arcs → chords, and merges, within this deviation
-    max_pass_mm: float = Field(5.0, gt=0)             # longer cutting moves (> 5 % over) are split
+    max_pass_mm: float = Field(5.0, gt=0)             # longer cutting moves (> 0.5 % over) are split
     # a split move's first and last piece this long (0: equal pieces only); with correct.via_points
     # the vertex a long line shares with a pocket corner gets a via point this far along it
     end_piece_mm: float = Field(0.0, ge=0)

@@ -74,7 +74,7 @@ SHANK_DZ_MM = 0.25  # micro-edge length on the cylindrical side (walls: mm-long 
 # seed's 51-level cylinder bench: 16 % with 3) -- kept switchable, see the issue-5 note
 PROBE_PASSES = 1
 PASSAGES = (-1, 0, 1)   # spindle revolutions around the nominal passage that cut each point
-STEP_SLACK = 0.05       # fraction of a deflection step a pass may exceed a whole number of steps by
+STEP_SLACK = 0.005      # fraction of a deflection step a pass may exceed a whole number of steps by
 K_NEAR = 8              # engagement: sub-segments tested first for each micro-edge (a speed-up only; 0: none)
 
 EFFECTS = {
