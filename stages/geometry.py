@@ -329,7 +329,7 @@ def sweep_bands(mesh: EnvelopeMesh, p0, p1, view_dir=None):
     u = p1 - p0
     s = mesh.face_normals @ u.T                                     # (nf, k)
     # a face within PARALLEL_TOL of parallel to the motion counts as parallel (s = 0), so that a
-    # pass turned by a nanometre has the silhouette of the exact one (see PARALLEL_TOL)
+    # pass turned by a few nanoradians has the silhouette of the exact one (see PARALLEL_TOL)
     eps = PARALLEL_TOL * np.maximum(np.linalg.norm(u, axis=1), 1e-30)[None]
     s = np.where(np.abs(s) <= eps, 0.0, s)
     sa, sb = s[mesh.edge_faces[:, 0]], s[mesh.edge_faces[:, 1]]     # (ne, k)
