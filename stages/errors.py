@@ -42,6 +42,7 @@ import pyarrow as pa
 
 from stages import InputError
 from stages import cutting
+from stages.geometry import CONTINUE_DEG
 from stages.forces import list_values, match_passes, pick_entry, program_tool_number
 
 NAME = "errors"
@@ -244,9 +245,6 @@ def run(inputs: dict, params: dict) -> dict:
 
 
 PAIR_CHUNK = 50_000     # (point, neighbouring pass) pairs per chunk: bounds the deflection rows held
-# a neighbouring move that turns less than this from the pass's own direction carries the same cut
-# on (the split stage's pieces of one line, a corrected line's via pieces): see _deepest_passage
-CONTINUE_DEG = 10.0
 
 
 def _deepest_passage(res: dict, finished_by: np.ndarray, passes: pa.Table, rows: np.ndarray,

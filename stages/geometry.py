@@ -314,6 +314,10 @@ def envelope_copies(mesh: EnvelopeMesh, tips, feed_deg=None, view_dir=None):
 # and its sweeps lost their cut pixels to the next pass (the cylinder's 0.5 mm passes: 105 of 727
 # passes "not cutting" in round 2). 1e-6 rad is far below the mesh's facets (~1e-2 rad).
 PARALLEL_TOL = 1e-6
+# a move joined end to start to the next that turns less than this from it carries the same cut
+# on: the split stage's pieces of one line, a corrected line's via pieces, a curve's CAM chords
+# (see cut_filter.line_interior and errors._deepest_passage)
+CONTINUE_DEG = 10.0
 
 
 def sweep_bands(mesh: EnvelopeMesh, p0, p1, view_dir=None):

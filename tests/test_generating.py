@@ -503,3 +503,41 @@ def test_a_pass_climbing_a_wall_beside_corner_rest_material_is_found_on_the_wall
     assert abs((g["rotation_deg"] + 180.0) % 360.0 - 180.0) < 3.0 and abs(g["contact_deg"] - 90.0) < 3.0
     assert g["nx"] < -0.99
     assert abs(g["gen_x_mm"]) < 0.05 and abs(g["gen_y_mm"]) < 0.3
+
+
+def test_pieces_of_a_line_are_predicted_where_they_leave_the_surface(tmp_path, monkeypatch):
+    """The cylinder's levels cut into 0.5 mm passes (the split at the virtual machine's resolution):
+    each piece inside the stock has its generating point at its middle.
+
+    Closed form: on a level the tool leaves the surface under its centre (the normal lies in the
+    x-z plane), so a piece leaves exactly its own length, whose middle is the piece's. The ball at
+    the end of the piece before has already cut all but d²/2R (≤ 12 µm) over the piece, under the
+    coarse mesh tolerance (25 µm), so the piece's own cut pixels lie under the ball at its end:
+    their median put the point up to 0.49 mm along a 0.5 mm piece (from q ≈ 60°), where the force is the next piece's
+    (at the stock's exit end 20-50 % less than the piece's own).
+    """
+    from tests.test_cut_filter import _pieces
+    passes, stock, _, _, _ = cylinder_case(n_levels=10, length_mm=3.0)
+    stock.export(tmp_path / "stock.stl")
+    pieces = _pieces(passes, 0.0)
+    params = {"tool": TOOL, "render": {"backend": "auto", "px_per_mm": 20}, "prune": {"min_contact_deg": 0.0}}
+    p = pieces.to_pandas()
+    mid_y = ((p.y0_mm + p.y1_mm) / 2).to_numpy()
+    # pieces of the levels q 0-71° wholly inside the stock (|y| ≤ 1.5; this short case's levels
+    # at 80° and 89° leave no surface of their own: the padding level at 98° recuts them)
+    level = (p.motion != 0) & (p.y0_mm != p.y1_mm) & (p.x0_mm > -0.5) & (p.x0_mm < 13.4)
+    inside = (level & (np.maximum(p.y0_mm.abs(), p.y1_mm.abs()) <= 1.5 + 1e-9)).to_numpy()
+
+    def gen_y():
+        inputs = {"passes": pieces, "stock": str(tmp_path / "stock.stl")}
+        cf = cut_filter.run(inputs, params)["cut_filter"]
+        ap = angle_prune.run({**inputs, "cut_filter": cf}, params)["angle_prune"]
+        g = generating.run({**inputs, "cut_filter": cf, "angle_prune": ap}, params)["generating"]
+        y = np.full(len(p), np.nan)
+        y[g.column("pass_id").to_numpy()] = g.column("gen_y_mm").to_numpy()
+        return y[inside]
+    off = np.abs(gen_y() - mid_y[inside])
+    assert inside.sum() >= 50 and np.isfinite(off).all()
+    assert off.max() < 0.06, off.max()                   # within a pixel
+    monkeypatch.setattr(cut_filter, "line_interior", lambda pg, cuts: np.zeros(len(pg.pass_id), bool))
+    assert np.nanmax(np.abs(gen_y() - mid_y[inside])) > 0.15   # the rule before: 0.24 mm at q ≥ 62°
