@@ -36,6 +36,10 @@ beside the summary holds every probe point with its error per program and the pa
 (the machine's own association) with that pass's predicted error from the first round's tables:
 where the prediction and the machine disagree.
 
+``--second-walls`` also probes the walls the balls touch besides the plan's own contact (a ball in a
+pocket's vertical corner finishes two walls, the plan probes one: :func:`second_wall_plan`),
+reported apart from the figures above.
+
 ``--whole`` runs the whole finishing program as written (no window cut, no band edges) and probes
 the whole finished surface; every run reports the RMS also by contact-angle band of the probe
 points (floors q < 30°, slopes 30–60°, walls ≥ 60°).
@@ -206,12 +210,50 @@ def _machined_error(text: bytes, wf: dict, window, pts, nrm, ideal, step_mm=None
     return {"err": _machine(text, False, wf, window, step_mm).probe(pts, nrm) - ideal}
 
 
+SECOND_WALL_DIRS = 72        # horizontal directions tried around each probe's ball centre (5° apart)
+SECOND_WALL_DEG = 30.0       # … more than this off the probe's normal
+SECOND_WALL_TOUCH_UM = 5.0   # no other pass of the rigid cut deeper than this there
+SECOND_WALL_BEHIND_MM = 0.05  # the stock this far behind the point (against d) stands above it
+SECOND_WALL_SPACING_MM = 0.05
+
+
+def second_wall_plan(vm, pts, nrm):
+    """Probe points on the walls the ball touches besides the plan's own contact (``--second-walls``).
+
+    The plan (``grid_plan``) has one point per ball-centre position, on the surface its normal
+    sees: of a ball in a vertical corner, which finishes both walls, one wall is never probed. Here
+    each plan point's ball centre c is tried in :data:`SECOND_WALL_DIRS` horizontal directions d
+    more than :data:`SECOND_WALL_DEG` off its normal: the point c − R·d with normal d is kept where
+    the stock stands above it :data:`SECOND_WALL_BEHIND_MM` behind it (against d: the ball's side
+    meets a wall of the stock there, not the air of the pocket) and no other pass of the rigid cut
+    of the original program cuts deeper than :data:`SECOND_WALL_TOUCH_UM` there (the machine's
+    probe measures the cut along d from the ball centres of the passes), one point per
+    :data:`SECOND_WALL_SPACING_MM`. Returns (points, normals, the rigid cut's deviation there)."""
+    c = pts + vm.R * nrm
+    a = np.radians(np.arange(SECOND_WALL_DIRS) * 360.0 / SECOND_WALL_DIRS)
+    d = np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], 1)
+    i, k = np.nonzero(nrm @ d.T < np.cos(np.radians(SECOND_WALL_DEG)))
+    p, n = c[i] - vm.R * d[k], d[k]
+    ideal = vm.probe(p, n) if len(p) else np.zeros(0)
+    touch = np.abs(ideal) < SECOND_WALL_TOUCH_UM
+    p, n, ideal = p[touch], n[touch], ideal[touch]
+    behind = p - SECOND_WALL_BEHIND_MM * n
+    keep = p[:, 2] < vm.stock_h(behind[:, 0], behind[:, 1])
+    p, n, ideal = p[keep], n[keep], ideal[keep]
+    _, first = np.unique(np.round(p / SECOND_WALL_SPACING_MM).astype(np.int64), axis=0, return_index=True)
+    first = np.sort(first)
+    return p[first], n[first], ideal[first]
+
+
 def vm_errors(window, programs: dict, wf: dict, spacing_mm: float = 0.1, cache: Path | None = None,
-              dump: Path | None = None, predicted=None, vm_step_mm: float | None = None) -> dict:
+              dump: Path | None = None, predicted=None, vm_step_mm: float | None = None,
+              second_walls: bool = False) -> dict:
     """Machine ``programs`` (name → text, "original" first) on the virtual machine and probe them;
     the programs not in ``cache`` are machined side by side, one process a core. ``vm_step_mm``:
     the machine's deflection resolution along the path (None: one deflection a pass, whose
-    resolution then follows the program's blocks)."""
+    resolution then follows the program's blocks). ``second_walls``: also probe the walls the
+    plan's balls touch besides their own contact (:func:`second_wall_plan`), reported apart
+    (``out["second_walls"]``); each program is machined again for them."""
     from concurrent.futures import ProcessPoolExecutor
 
     import pyarrow as pa
@@ -273,6 +315,30 @@ def vm_errors(window, programs: dict, wf: dict, spacing_mm: float = 0.1, cache: 
             out[name][band] = {"points": int(m.sum()), "rms_um": float(np.sqrt(np.mean(e[m] ** 2))) if m.any() else None}
     if dump is not None:
         pq.write_table(pa.table(cols), dump)
+    if second_walls:
+        def plan2():
+            vm = _machine(programs["original"], True, wf, window)
+            p2, n2, i2 = second_wall_plan(vm, pts, nrm)
+            ok = (p2[:, 0] >= x0) & (p2[:, 0] < x1) & (p2[:, 1] >= y0) & (p2[:, 1] < y1)
+            return {"pts": p2[ok], "nrm": n2[ok], "ideal": i2[ok]}
+        plan_parts = [b"second-walls", SECOND_WALL_DIRS, SECOND_WALL_DEG, SECOND_WALL_TOUCH_UM,
+                      SECOND_WALL_BEHIND_MM, SECOND_WALL_SPACING_MM]
+        ref2 = (_cached(cache, _vm_key(programs["original"], wf, b"rigid", *plan_parts, *inputs), plan2) if cache
+                else plan2())
+        p2, n2, i2 = ref2["pts"], ref2["nrm"], ref2["ideal"]
+        out["second_walls"] = {"points": int(len(p2))}
+        if len(p2):
+            key2 = lambda t: _vm_key(t, wf, *plan_parts, *inputs)  # noqa: E731
+            todo2 = list(dict.fromkeys(t for t in programs.values()
+                                       if cache is None or not (cache / f"{key2(t)}.npz").is_file()))
+            done2 = {}
+            with ProcessPoolExecutor(max(1, min(len(todo2), os.cpu_count() or 1))) as pool:
+                futures = [pool.submit(_machined_error, t, wf, window, p2, n2, i2, vm_step_mm) for t in todo2]
+                done2.update(zip(todo2, (f.result() for f in futures)))
+            for name, text in programs.items():
+                e = (_cached(cache, key2(text), lambda text=text: done2[text]) if cache else done2[text])["err"]
+                out["second_walls"][name] = {"rms_um": float(np.sqrt(np.mean(e ** 2))),
+                                             "max_abs_um": float(np.abs(e).max())}
     return out
 
 
@@ -320,6 +386,9 @@ def main():
                     help="the NC program (windows are cut from it as raster rows along X)")
     ap.add_argument("--workflow", type=Path, default=WORKFLOW,
                     help="the workflow whose tool, material, machine, stock and settings the runs use")
+    ap.add_argument("--second-walls", action="store_true",
+                    help="also probe the walls the balls touch besides the plan's own contact (a ball in a "
+                         "vertical corner finishes two walls; the plan probes one), reported apart")
     ap.add_argument("window", nargs="*", type=float)
     args = ap.parse_args()
     wins = [tuple(args.window[i:i + 4]) for i in range(0, len(args.window), 4)] or list(WINDOWS)
@@ -360,7 +429,7 @@ def main():
         res = vm_errors(w, written, wf_used, args.spacing, cache=Path(args.out) / "vm_cache",
                         dump=root / "points.parquet",
                         predicted=(errs.column("pass_id").to_numpy(), errs.column("err_um").to_numpy()),
-                        vm_step_mm=args.vm_step_mm)
+                        vm_step_mm=args.vm_step_mm, second_walls=args.second_walls)
         if res is None:
             print(f"window x {w[0]:g}–{w[1]:g}, y {w[2]:g}–{w[3]:g}: no probe point of the plan in it, skipped")
             continue
@@ -379,6 +448,11 @@ def main():
                   f"P95 {v['p95_abs_um']:.2f} um, max {v['max_abs_um']:.2f} um; by q: "
                   + ", ".join(f"{b} {v[b]['rms_um']:.2f} um ({v[b]['points']} pts)" for _, _, b in Q_BANDS
                               if v[b]['rms_um'] is not None))
+        if "second_walls" in res:
+            sw = res["second_walls"]
+            print(f"  second walls (not in the figures above): {sw['points']} probe points"
+                  + "".join(f"; {name} RMS {sw[name]['rms_um']:.2f} um ({100 * sw[name]['rms_um'] / sw['original']['rms_um']:.1f} %), "
+                            f"max {sw[name]['max_abs_um']:.1f} um" for name in written if name in sw))
         report.append(res)
     Path(args.out, "summary.json").write_text(json.dumps(report, indent=1, default=str))
 

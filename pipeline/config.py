@@ -190,6 +190,14 @@ class Correct(_Strict):
     # doubled its deflection on the virtual machine (−72 → −166 µm). The whole sample program with
     # via points: 39.1 / 34.5 % after one / three rounds against 39.8 / 37.7 % without
     corner_via_mm: float = Field(0.5, ge=0)
+    # realise the errors of the passes' second contacts too (errors.err2_um: a ball in a vertical
+    # corner finishes both walls; stages.correct.contact_moves), and guard them in the gouge limit.
+    # Off by default: on the sample's pocket corner (window x 70-80, y 44-53, 0.5 mm passes) the
+    # bench's probes (one per ball position: the x wall) 47.2 / 81.6 % after one / three rounds
+    # against 44.8 / 83.3 % without; the surfaces they miss (the corner's arc and the y wall,
+    # --second-walls: 3,578 points, 80.6 µm before) 123.5 / 119.6 % against 129.2 / 114.0 %
+    # (docs/closed_loop_samples.md)
+    second_contacts: bool = False
 
 
 class Measurements(_Strict):

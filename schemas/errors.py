@@ -19,4 +19,11 @@ SCHEMA = pa.schema([
     pa.field('flute', pa.int32()),                 # flute that generated C (the deepest cut)
     pa.field('finished_by', pa.int32()),           # pass whose tooth passage leaves C (the deepest; a
                                                    # neighbour near the ends of passes shorter than a revolution's feed)
+    # the error at the pass's second contact with the design surface (generating's *2 columns: a
+    # ball in a vertical corner, on a floor beside a wall); NaN where there is none
+    pa.field('err2_um', pa.float64()),
+    pa.field('nx2', pa.float64()),
+    pa.field('ny2', pa.float64()),
+    pa.field('nz2', pa.float64()),
+    pa.field('contact2_deg', pa.float64()),
 ])

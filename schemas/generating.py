@@ -14,4 +14,15 @@ SCHEMA = pa.schema([
     pa.field('nz', pa.float64()),
     pa.field('n_px', pa.int32()),
     pa.field('view', pa.string()),
+    # a second contact of the pass with the design surface (a ball in a vertical corner finishes
+    # both walls, one on a floor beside a wall its foot): NaN and 0 where there is none
+    pa.field('gen2_x_mm', pa.float64()),
+    pa.field('gen2_y_mm', pa.float64()),
+    pa.field('gen2_z_mm', pa.float64()),
+    pa.field('rotation2_deg', pa.float64()),
+    pa.field('contact2_deg', pa.float64()),
+    pa.field('nx2', pa.float64()),
+    pa.field('ny2', pa.float64()),
+    pa.field('nz2', pa.float64()),
+    pa.field('n2_px', pa.int32()),
 ])

@@ -35,6 +35,12 @@ m = −(e_i n_i + e_j n_j), which realises both errors exactly.
   450 µm clip) 48.6 / 70.6 % after one / three rounds against 39.7 / 32.7 %: −δ̄ also moves a
   vertex along the surface, and on a convex row (y 61.27) and in the pocket's corners that cut
   0.7–0.8 mm within three rounds. Hence off.
+- Second contacts (``correct.second_contacts``, off by default; ``errors``' ``err2_um`` along
+  ``nx2``…: a ball in a vertical corner finishes both walls): a vertex beside such a pass realises
+  every contact of its passes at once, by the
+  damped least squares of :func:`contact_moves` (up to four errors and normals), so each piece of a
+  corner climb moves into both walls alike whichever wall its first contact is on. The gouge limit
+  counts the second contacts as surfaces (of their pass: a vertex does not guard against its own).
 - Vertices inside a pass that merges several short blocks get the error of that pass alone.
 - A pass without an error row (pruned, non-cutting, rapid) contributes nothing: a vertex between it
   and a predicted pass follows the predicted pass; a vertex with no predicted pass on either side
@@ -94,7 +100,7 @@ import pyarrow as pa
 from stages import InputError
 
 NAME = "correct"
-VERSION = "14"
+VERSION = "15"
 INPUTS = ("blocks", "passes", "errors", "generating")
 OUTPUTS = ("corrected",)
 # only the clip limit and the relaxation of rounds 2… change the table; tol_um and max_iter steer
@@ -102,12 +108,13 @@ OUTPUTS = ("corrected",)
 # every cached round
 PARAMS = ("correct.max_move_um", "correct.relax", "correct.accelerate", "correct.deflection_vector",
           "correct.gouge_limit", "correct.gouge_lines", "correct.refine_across_path",
-          "correct.hold_corners", "correct.guard_fans", "correct.normal_tol_deg", "tool")
+          "correct.hold_corners", "correct.guard_fans", "correct.normal_tol_deg", "correct.second_contacts",
+          "tool")
 
 DEFAULTS = {"max_move_um": 50.0, "tol_um": 0.1, "max_iter": 5, "relax": 1.0, "ln_normals": False,
             "comp_table": False, "deflection_vector": False, "accelerate": False,
             "gouge_limit": True, "gouge_lines": False, "refine_across_path": False,
-            "hold_corners": False, "guard_fans": False, "normal_tol_deg": None}
+            "hold_corners": False, "guard_fans": False, "normal_tol_deg": None, "second_contacts": False}
 _PLANE_AXES = {17: (0, 1, 2), 18: (2, 0, 1), 19: (1, 2, 0)}  # as stages.parse: (first, second, normal)
 _EPS_UM = 1e-9
 # normals of the two passes at a vertex closer than this are one normal for the least-squares
@@ -285,6 +292,47 @@ def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True, along_path=N
     return m + extra
 
 
+def contact_moves(err, normals, has, along_path=None, normal_tol_deg=NORMAL_TOL_DEG):
+    """Vertex moves that realise every contact's error at once (damped least squares), vectorised.
+
+    Where a pass touches the design surface twice (``errors``' second contact: a ball in a vertical
+    corner finishes both walls, one on a floor beside a wall its foot) a vertex carries up to four
+    (error, normal) pairs, two per pass. The move is the least-squares solution of m·n_k = −e_k
+    over them, with the filter of :func:`vertex_moves`: m = Nᵀ F(N Nᵀ)(−e), a mode of normals closer
+    than ``normal_tol_deg`` taken as one (the mean of their errors). Two passes with the same two
+    contacts at right angles (a corner climb's pieces) give m = −(e₁n₁ + e₂n₂) exactly; the same
+    wall seen by both passes is realised at the mean of their errors. Limited to
+    :data:`REFINE_MAX_RATIO` times the largest error; where the path runs straight through
+    (``along_path`` non-zero) the part along it is taken off (it changes lengths, not surfaces).
+
+    Parameters
+    ----------
+    err : (v, K) float, µm (positive = material left)
+    normals : (v, K, 3) float, unit surface normals out of the material
+    has : (v, K) bool, which pairs count
+    along_path : (v, 3) float or None
+    normal_tol_deg : float
+
+    Returns
+    -------
+    (v, 3) float, moves in µm.
+    """
+    has = np.asarray(has, bool)
+    e = np.where(has, np.nan_to_num(np.asarray(err, float)), 0.0)
+    N = np.nan_to_num(np.asarray(normals, float)) * has[..., None]
+    G = np.einsum("vkd,vld->vkl", N, N)
+    mu, vec = np.linalg.eigh(G)
+    mu_tol = 1.0 - np.cos(np.radians(normal_tol_deg))
+    gain = np.where(mu > 1e-12, mu / (mu ** 2 + mu_tol ** 2), 0.0)
+    coef = np.einsum("vki,vk->vi", vec, -e) * gain
+    m = np.einsum("vk,vkd->vd", np.einsum("vki,vi->vk", vec, coef), N)
+    if along_path is not None:
+        m -= np.einsum("ij,ij->i", m, along_path)[:, None] * along_path
+    cap = REFINE_MAX_RATIO * np.max(np.abs(e), axis=1)
+    size = np.linalg.norm(m, axis=1)
+    return m * np.minimum(1.0, cap / np.maximum(size, 1e-30))[:, None]
+
+
 def corner_limit(total_um, own_normals):
     """Keep the moves of corner vertices out of the fan of surface their tool generates.
 
@@ -390,7 +438,8 @@ def gouge_limit(total_um, tips, own, own_normals, gen_xyz, gen_normals, gen_pass
     total_um : (v, 3) float, vertex moves from the original program, µm (a limited copy is returned)
     tips : (v, 3) float, tool tip at the original vertices, mm
     own : (v, 2) int, index of the vertex's own passes into ``gen_pass``'s numbering (−1: none)
-    own_normals : (v, 2, 3) float, their unit normals (zeros: none)
+    own_normals : (v, K, 3) float, unit normals of their surfaces (K = 2: one per pass; 4 with
+        their second contacts; zeros: none)
     gen_xyz, gen_normals : (g, 3) float, generating points (mm) and their unit normals
     gen_pass : (g,) int, pass index of each generating point
     shape : :class:`stages.geometry.ToolShape`
@@ -524,6 +573,26 @@ def _errors_per_pass(passes: pa.Table, errors: pa.Table):
     return err, nrm, has, defl
 
 
+def _second_per_pass(passes: pa.Table, errors: pa.Table):
+    """Error, unit normal and has-flag of each pass's second contact (``err2_um``, ``nx2``…; none
+    where the table has no such columns: measured residuals, older tables)."""
+    n = passes.num_rows
+    err, nrm, has = np.zeros(n), np.zeros((n, 3)), np.zeros(n, bool)
+    if errors is None or errors.num_rows == 0 or n == 0 or "err2_um" not in errors.column_names:
+        return err, nrm, has
+    pid = _col(passes, "pass_id", np.int64)
+    eid = _col(errors, "pass_id", np.int64)
+    rows = np.minimum(np.searchsorted(pid, eid), n - 1)
+    e2 = _col(errors, "err2_um")
+    nn = _xyz(errors, ("nx2", "ny2", "nz2"))
+    length = np.linalg.norm(nn, axis=1)
+    good = (pid[rows] == eid) & np.isfinite(e2) & np.isfinite(length) & (length > 1e-12)
+    err[rows[good]] = e2[good]
+    nrm[rows[good]] = nn[good] / length[good, None]
+    has[rows[good]] = True
+    return err, nrm, has
+
+
 def _node_turn_cos(pstart, pend):
     """(P + 1,) cosine of the path's turn at every node (start of pass k, end of the last; 0 at
     the ends) and the (P + 1, 3) sum of the unit directions in and out."""
@@ -544,8 +613,9 @@ def _straight_through(pstart, pend):
     return np.where(straight[:, None], t, 0.0)
 
 
-def _generating_points(generating: pa.Table, passes: pa.Table):
-    """Generating points (mm), unit normals and pass index (into ``passes`` sorted by pass id)."""
+def _generating_points(generating: pa.Table, passes: pa.Table, second: bool = False):
+    """Generating points (mm), unit normals and pass index (into ``passes`` sorted by pass id);
+    with ``second`` the second contacts as well."""
     if generating.num_rows == 0 or passes.num_rows == 0:
         return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64)
     xyz = _xyz(generating, ("gen_x_mm", "gen_y_mm", "gen_z_mm"))
@@ -555,7 +625,15 @@ def _generating_points(generating: pa.Table, passes: pa.Table):
     k = np.minimum(np.searchsorted(ids, gid), ids.size - 1)
     ok = (ids[k] == gid) & np.isfinite(xyz).all(axis=1) & np.isfinite(n).all(axis=1)
     n = n[ok] / np.maximum(np.linalg.norm(n[ok], axis=1), 1e-12)[:, None]
-    return xyz[ok], n, k[ok]
+    xyz, k = xyz[ok], k[ok]
+    if second and "nx2" in generating.column_names:          # second contacts are surfaces too
+        xyz2 = _xyz(generating, ("gen2_x_mm", "gen2_y_mm", "gen2_z_mm"))
+        n2 = _xyz(generating, ("nx2", "ny2", "nz2"))
+        k2 = np.minimum(np.searchsorted(ids, gid), ids.size - 1)
+        ok2 = (ids[k2] == gid) & np.isfinite(xyz2).all(axis=1) & np.isfinite(n2).all(axis=1)
+        n2 = n2[ok2] / np.maximum(np.linalg.norm(n2[ok2], axis=1), 1e-12)[:, None]
+        xyz, n, k = np.vstack([xyz, xyz2[ok2]]), np.vstack([n, n2]), np.concatenate([k, k2[ok2]])
+    return xyz, n, k
 
 
 def contact_lines(gen_xyz, gen_normals, gen_pass, pstart, pend, shape, spacing_mm=CONTACT_SPACING_MM):
@@ -715,6 +793,21 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
                                  along_path=_straight_through(pstart, pend),
                                  across_path=bool(p["refine_across_path"]),
                                  normal_tol_deg=_normal_tol(p)) - d_mean
+        err2, nrm2, has2 = _second_per_pass(passes, errors)
+        has2 &= has & bool(p["second_contacts"])
+        if has2.any():
+            # a vertex beside a pass with a second contact realises all its passes' contacts
+            hb2, ha2 = np.concatenate(([False], has2)), np.concatenate((has2, [False]))
+            two = hb2 | ha2
+            eb2, ea2 = np.concatenate(([0.0], err2)), np.concatenate((err2, [0.0]))
+            nb2, na2 = np.vstack([np.zeros((1, 3)), nrm2]), np.vstack([nrm2, np.zeros((1, 3))])
+            es = np.stack([eb, eb2, ea, ea2], 1)[two]
+            ns = np.stack([nb_, nb2, na_, na2], 1)[two]
+            dm = d_mean[two]
+            node_move[two] = contact_moves(es - np.einsum("vkd,vd->vk", ns, dm), ns,
+                                           np.stack([has_b, hb2, has_a, ha2], 1)[two],
+                                           along_path=_straight_through(pstart, pend)[two],
+                                           normal_tol_deg=_normal_tol(p)) - dm
         if node_moves is not None:
             if np.shape(node_moves) != node_move.shape:
                 raise InputError(f"correct: node_moves has shape {np.shape(node_moves)}, the passes "
@@ -732,6 +825,13 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
         e_in = err[k_in] - np.einsum("ij,ij->i", defl[k_in], nrm[k_in])
         move[inside] = (vertex_moves(e_in, nrm[k_in], has[k_in], e_in, nrm[k_in], has[k_in])
                         - defl[k_in] * has[k_in, None])
+        in2 = has2[k_in]
+        if in2.any():
+            k2 = k_in[in2]
+            ns = np.stack([nrm[k2], nrm2[k2]], 1)
+            es = np.stack([err[k2], err2[k2]], 1) - np.einsum("vkd,vd->vk", ns, defl[k2])
+            move[np.flatnonzero(inside)[in2]] = contact_moves(es, ns, np.ones((k2.size, 2), bool),
+                                                              normal_tol_deg=_normal_tol(p)) - defl[k2]
         vnormal = node_normal[node]
         vnormal[inside] = nrm[qc[inside]] * has[qc[inside], None]
         # the vertex's own passes (they set its move; the gouge limit checks the others)
@@ -739,6 +839,10 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
         own[inside] = qc[inside, None]
         n_own = np.where(has[:, None], nrm, 0.0)
         own_normals = np.where((own >= 0)[..., None], n_own[np.maximum(own, 0)], 0.0)
+        # the gouge limit's own surfaces include the second contacts (else a neighbouring piece's
+        # point on the same wall, which its ball touches, would hold the move into that wall)
+        n_own2 = np.where(has2[:, None], nrm2, 0.0)
+        own_surfaces = np.concatenate([own_normals, np.where((own >= 0)[..., None], n_own2[np.maximum(own, 0)], 0.0)], 1)
         # pass coordinates are the tool tip; blocks may be the ball centre (control_point: center)
         frame = np.median(end[~inside] - node_xyz[node[~inside]], axis=0) if (~inside).any() else np.zeros(3)
     else:
@@ -788,7 +892,7 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
             gouge_um += np.linalg.norm(held - total_um, axis=1)
             total_um = held
     if n_pass and generating is not None and tool_shape is not None:
-        gen_xyz, gen_n, gen_pass = _generating_points(generating, passes)
+        gen_xyz, gen_n, gen_pass = _generating_points(generating, passes, bool(p["second_contacts"]))
         if p["gouge_lines"]:
             gen_xyz, gen_n, gen_pass = contact_lines(gen_xyz, gen_n, gen_pass, pstart, pend, tool_shape)
         if corner.any():
@@ -796,7 +900,7 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
             fan_xyz, fan_n, fan_k = corner_fans(orig - frame, own_normals, corner, tool_shape)
             gen_xyz, gen_n = np.vstack([gen_xyz, fan_xyz]), np.vstack([gen_n, fan_n])
             gen_pass = np.concatenate([gen_pass, -2 - fan_k])
-        total_um, taken = gouge_limit(total_um, orig - frame, own, own_normals, gen_xyz, gen_n,
+        total_um, taken = gouge_limit(total_um, orig - frame, own, own_surfaces, gen_xyz, gen_n,
                                       gen_pass, tool_shape,
                                       fan_free=None if p["hold_corners"] else corner)
         gouge_um += taken

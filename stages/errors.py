@@ -23,6 +23,9 @@ For the generating point C of a pass (``generating``: φ_C, q_C, n_C) and each f
   ``defl_y_um``): its part along n is in the error, its tangential part shifts the cusps between
   rows; ``correct.deflection_vector`` undoes it as a vector (the tool put back where it
   belongs, not only the surface along n).
+- A pass's second contact with the design surface (``generating``'s ``*2`` columns: a ball in a
+  vertical corner, on a floor beside a wall) gets its own error by the same kernel with the pass's
+  own deflection, read where a flute passes it: ``err2_um`` along ``nx2``…, NaN where there is none.
 - Shape error: the tool profile table (claim 2, ``tool.profile``: CSV ``contact_deg,error_um``,
   error_um > 0 = the tool is smaller than nominal there = material left), linearly interpolated at
   q_C and held constant beyond its first/last row. A profile measured as the envelope of the
@@ -46,7 +49,7 @@ from stages.geometry import CONTINUE_DEG
 from stages.forces import list_values, match_passes, pick_entry, program_tool_number
 
 NAME = "errors"
-VERSION = "5"
+VERSION = "6"
 INPUTS = ("passes", "generating", "deflection")
 OUTPUTS = ("errors",)
 PARAMS = ("tool",)
@@ -227,6 +230,7 @@ def run(inputs: dict, params: dict) -> dict:
     res["contact_deg"] = q.copy()
     if len(d_ids):
         _deepest_passage(res, finished_by, passes, rows, gen_xyz, normal, defl, tool, profile)
+    second = _second_contact_error(gen, passes, rows, dx, dy, tool, profile)
     table = pa.table({
         "program_id": gen.column("program_id"),
         "pass_id": pa.array(pass_ids.astype(np.int32)),
@@ -240,8 +244,37 @@ def run(inputs: dict, params: dict) -> dict:
         "spindle_deg": res["spindle_deg"],
         "flute": res["flute"],
         "finished_by": pa.array(finished_by.astype(np.int32)),
+        **second,
     })
     return {"errors": table}
+
+
+def _second_contact_error(gen: pa.Table, passes: pa.Table, rows: np.ndarray, dx, dy, tool: dict, profile) -> dict:
+    """Error at each pass's second contact (``generating``'s ``*2`` columns; NaN where it has none,
+    or the table has no such columns): the same kernel with the pass's own deflection, read where a
+    flute passes the second contact (no neighbouring passage: the contacts that need a second point
+    are those of a ball in a corner, where the pass's own passages leave both walls)."""
+    cols = ("gen2_x_mm", "gen2_y_mm", "gen2_z_mm", "nx2", "ny2", "nz2", "contact2_deg", "rotation2_deg")
+    n = gen.num_rows
+    out = {k: np.full(n, np.nan) for k in ("err2_um", "nx2", "ny2", "nz2", "contact2_deg")}
+    if not all(c in gen.column_names for c in cols):
+        return out
+    v = {c: gen.column(c).to_numpy(zero_copy_only=False).astype(float) for c in cols}
+    ok = np.isfinite(v["contact2_deg"]) & np.isfinite(dx).all(axis=1)
+    if not ok.any():
+        return out
+    xyz = np.stack([v["gen2_x_mm"], v["gen2_y_mm"], v["gen2_z_mm"]], axis=1)[ok]
+    normal = np.stack([v["nx2"], v["ny2"], v["nz2"]], axis=1)[ok]
+    q = v["contact2_deg"][ok]
+    tip_z = tip_z_nearest(passes, rows[ok], xyz)
+    if tool.get("control_point") == "center":
+        tip_z = tip_z - cutting.corner_radius_mm(tool)
+    res = machining_error(dx[ok], dy[ok], v["rotation2_deg"][ok], q, normal,
+                          contact_height_mm(tool, q, xyz[:, 2], tip_z), tool, profile)
+    out["err2_um"][ok] = res["err_um"]
+    out["nx2"][ok], out["ny2"][ok], out["nz2"][ok] = normal.T
+    out["contact2_deg"][ok] = q
+    return out
 
 
 PAIR_CHUNK = 50_000     # (point, neighbouring pass) pairs per chunk: bounds the deflection rows held

@@ -26,6 +26,14 @@ between two rows; the last row before a wall or an edge leaves a band reaching m
 side, whose mean read the rotation angle 4-9° off the surface normal (sample row y 61.2: up to
 120 µm of the error, the deflection there swinging 20 µm per degree of spindle angle).
 
+Second contact (with the design model): a ball in a pocket's vertical corner finishes both walls,
+one on a floor beside a wall its foot too, and one generating point stands for one of them only (on
+the sample's corner climbs, which one changed from piece to piece). Where the engaged strip around
+the tool touches the design surface a second time, more than :data:`SECOND_DEG` off the first
+contact's normal and separated from it (:func:`_second_estimate`), the surface found along that
+normal (claim 6's view) is the pass's second contact: columns ``gen2_*``, ``rotation2_deg``,
+``contact2_deg``, ``nx2``…, ``n2_px`` (NaN and 0 where there is none).
+
 View correction (claim 6, paras 0075-0078): seen from below, a surface with contact angle q is
 foreshortened by cos q, so steep walls shrink below a pixel (the seed loses everything above
 87.6°). When the from-below estimate says q > 60°, or no pixel survives although the pass cuts,
@@ -63,7 +71,7 @@ from stages.cut_filter import (PASSES_PER_DRAW, coarse_tolerance, fine_tolerance
 from stages.render import Scene, Snapshot, View
 
 NAME = "generating"
-VERSION = "16"
+VERSION = "17"
 INPUTS = ("passes", "stock", "cut_filter", "angle_prune", "nominal")
 OUTPUTS = ("generating", "engagement")
 PARAMS = ("tool", "render")
@@ -92,6 +100,15 @@ CONTACT_BAND_MM = 0.01
 # from at most this many strip points
 STRIP_BAND_MM = 0.1
 STRIP_DESIGN_POINTS = 4000
+# a second contact (_second_estimate): strip points more than SECOND_DEG off the generating point's
+# normal, the deepest of them within SECOND_TOL_MM of the generating point's depth into the model
+# (the rest material across a pocket corner the pass does not reach lies 0.5 mm and more off it;
+# the sample's y wall at x 73.5, y 53, which the row y 48 does cut, 0.09-0.25 mm), the patch of those within
+# CONTACT_BAND_MM of that deepest within SECOND_SPREAD_DEG of its mean direction (a ball in a
+# plane's contact: ±5° for the band; a fillet of the ball's own radius: the whole arc, rejected)
+SECOND_DEG = 30.0
+SECOND_TOL_MM = DESIGN_TOL_MM
+SECOND_SPREAD_DEG = 15.0
 PASSES_PER_BATCH = 8          # view-correction windows per render
 M_WINDOWS_PER_BATCH = 256     # from-below windows of M per render (bounds the images in memory)
 N_LAYERS = 5
@@ -378,6 +395,8 @@ def generating(pg, shape, wp, renderer, px_per_mm, predict_idx, pred_tips, flute
            ("gen_x_mm", "gen_y_mm", "gen_z_mm", "rotation_deg", "contact_deg", "nx", "ny", "nz")}
     gen["n_px"] = np.zeros(m, np.int64)
     gen["view"] = np.array(["none"] * m, dtype=object)
+    gen.update({k: np.full(m, np.nan) for k in SECOND_COLUMNS})    # the second contact, if any
+    gen["n2_px"] = np.zeros(m, np.int64)
     gen["eng_c"] = np.full((m, 3), np.nan)      # engagement view (not in the table, see _store)
     gen["eng_n"] = np.full((m, 3), np.nan)
     eng = [None] * m
@@ -417,6 +436,18 @@ def generating(pg, shape, wp, renderer, px_per_mm, predict_idx, pred_tips, flute
     steep = [k for k, _, _ in redo if gen["view"][k] == "normal"]
     _engagement_along_normal(eng, steep, gen, pg, shape, wp, renderer, px_per_mm, cutting, bounds, mesh,
                              pred_tips, pg.s0[snap], fd, tops, dz, n_phi, tol)
+    if design is not None:
+        # the second contact: aimed by the engaged strip, found along its normal as claim 6 finds
+        # a steep wall (what the view sees there is the surface this pass leaves, or nothing)
+        second = []
+        for k in np.nonzero(gen["view"] != "none")[0]:
+            n1 = np.array([gen["nx"][k], gen["ny"][k], gen["nz"][k]])
+            c1 = np.array([gen["gen_x_mm"][k], gen["gen_y_mm"][k], gen["gen_z_mm"][k]])
+            est = _second_estimate(shape, eng[k][0], dz, n_phi, u[k], fd[k], pred_tips[k], design, n1, c1)
+            if est is not None:
+                second.append((int(k), est[0], est[1]))
+        _view_correction(gen, second, pg, shape, wp, renderer, px_per_mm, cutting, bounds, mesh, coarse,
+                         pred_tips, s_p, f, fd, gap, u, design, second=True)
     return gen, eng
 
 
@@ -455,6 +486,38 @@ def _from_below(gen, redo, k, view, M, fin, shape, E, dz, n_phi, s_p, f, gap, u,
             redo.append((k, max(est[0], STEEP_DEG), est[1]))
 
 
+def _strip_points(shape, E, dz, n_phi, u, feed_deg, width=0.1):
+    """The engaged envelope points of the own-path strip (|N·u| < ``width``, N the envelope normal)
+    of engagement grid ``E``: their grid indices (k, j), contact angles q and world azimuths θ (rad)
+    and envelope normals N (world frame, out of the tool: minus the material's normal there)."""
+    n_z = E.shape[0]
+    z = (np.arange(n_z) + 0.5) * dz
+    rc = max(shape.corner_mm, 1e-9)
+    q = np.where(z < rc, np.arccos(np.clip((rc - z) / rc, -1.0, 1.0)), np.pi / 2)
+    th = np.radians((np.arange(n_phi) + 0.5) * 360.0 / n_phi + feed_deg)
+    u = np.asarray(u, float)
+    # N·u = sin q (cos θ u_x + sin θ u_y) − cos q u_z, an outer product: the grid's normals are
+    # formed only at the strip's points (a wall climb's grid holds 10⁵–10⁶ points)
+    nu = np.sin(q)[:, None] * (np.cos(th) * u[0] + np.sin(th) * u[1])[None] - (np.cos(q) * u[2])[:, None]
+    kk, jj = np.nonzero(E & (np.abs(nu) < width))
+    qs, ts = q[kk], th[jj]
+    return kk, jj, qs, ts, np.stack([np.sin(qs) * np.cos(ts), np.sin(qs) * np.sin(ts), -np.cos(qs)], axis=1)
+
+
+def _strip_world(shape, tip, dz, kk, th):
+    """World coordinates of strip points at levels ``kk`` and azimuths ``th`` of the tool at ``tip``."""
+    z = (kk + 0.5) * dz
+    r = shape.profile_radius(z)
+    return np.asarray(tip, float)[:3] + np.stack([r * np.cos(th), r * np.sin(th), z], axis=1)
+
+
+def _mean_angles(q, th, feed_deg):
+    """(q, φ) in degrees, φ from the feed direction, of the mean of envelope directions (q, θ)."""
+    v = np.array([np.mean(np.sin(q) * np.cos(th)), np.mean(np.sin(q) * np.sin(th)), np.mean(np.cos(q))])
+    return (float(np.degrees(np.arctan2(np.hypot(v[0], v[1]), v[2]))),
+            float((np.degrees(np.arctan2(v[1], v[0])) - feed_deg) % 360.0))
+
+
 def _strip_estimate(shape, E, dz, n_phi, u, feed_deg, width=0.1, tip=None, design=None):
     """(q, φ) of the mean direction of the engaged envelope points with |N·u| < ``width``.
 
@@ -468,33 +531,68 @@ def _strip_estimate(shape, E, dz, n_phi, u, feed_deg, width=0.1, tip=None, desig
     there saw nothing, or a few pixels of its edge, and the pass had no generating point or a
     wrong one). Returns None when no such point is engaged.
     """
-    n_z = E.shape[0]
-    z = (np.arange(n_z) + 0.5) * dz
-    rc = max(shape.corner_mm, 1e-9)
-    q = np.where(z < rc, np.arccos(np.clip((rc - z) / rc, -1.0, 1.0)), np.pi / 2)
-    phi = np.radians((np.arange(n_phi) + 0.5) * 360.0 / n_phi)
-    th = phi + np.radians(feed_deg)
-    N = np.stack(np.broadcast_arrays(np.sin(q)[:, None] * np.cos(th)[None], np.sin(q)[:, None] * np.sin(th)[None],
-                                     -np.cos(q)[:, None] + 0 * th[None]), axis=-1)
-    sel = E & (np.abs(N @ np.asarray(u, float)) < width)
-    if not sel.any():
+    kk, jj, q, th, _ = _strip_points(shape, E, dz, n_phi, u, feed_deg, width)
+    if not len(kk):
         return None
     if design is not None and tip is not None:
-        kk, jj = np.nonzero(sel)
         take = np.linspace(0, len(kk) - 1, min(len(kk), STRIP_DESIGN_POINTS)).astype(np.int64)
-        kk, jj = kk[take], jj[take]
-        r = shape.profile_radius(z[kk])
-        pts = np.asarray(tip, float)[:3] + np.stack([r * np.cos(th[jj]), r * np.sin(th[jj]), z[kk]], axis=1)
-        sd = design.signed_distance(pts)
+        kk, q, th = kk[take], q[take], th[take]
+        sd = design.signed_distance(_strip_world(shape, tip, dz, kk, th))
         if sd.min() <= DESIGN_TOL_MM:
-            deep = sd <= sd.min() + STRIP_BAND_MM
-            sel = np.zeros_like(sel)
-            sel[kk[deep], jj[deep]] = True
-    qq = np.broadcast_to(q[:, None], E.shape)[sel]
-    pp = np.broadcast_to(phi[None], E.shape)[sel]
-    v = np.array([np.mean(np.sin(qq) * np.cos(pp)), np.mean(np.sin(qq) * np.sin(pp)), np.mean(np.cos(qq))])
-    return (float(np.degrees(np.arctan2(np.hypot(v[0], v[1]), v[2]))),
-            float(np.degrees(np.arctan2(v[1], v[0])) % 360.0))
+            # the patch around the deepest point: in a vertical corner both walls lie within the
+            # band, and their mean aims between them at neither (the second contact is found later)
+            i = int(np.argmin(sd))
+            near = (np.sin(q) * np.sin(q[i]) * np.cos(th - th[i]) + np.cos(q) * np.cos(q[i])
+                    > np.cos(np.radians(SECOND_DEG)))
+            deep = (sd <= sd.min() + STRIP_BAND_MM) & near
+            q, th = q[deep], th[deep]
+    return _mean_angles(q, th, feed_deg)
+
+
+def _second_estimate(shape, E, dz, n_phi, u, feed_deg, tip, design, n1, c1, width=0.1):
+    """(q, φ) where the pass touches the design surface a second time, or None.
+
+    A ball in a pocket's vertical corner finishes both walls at once, and one on a floor beside a
+    wall its foot too: two contacts whose normals lie far apart, with no contact between them.
+    One generating point stands for one of them (from below a vertical wall is edge-on; along one
+    wall's normal the other is), and on the sample's corner climbs (source lines 3996 and 3999)
+    which one changed from piece to piece with the pixels each piece happened to cut. The second
+    contact is sought on the engaged strip (as :func:`_strip_estimate`): its points more than
+    :data:`SECOND_DEG` off the generating point's normal ``n1`` whose deepest lies within
+    :data:`SECOND_TOL_MM` of the generating point ``c1``'s depth into the model (so not the rest
+    material across a corner, 0.5–1.7 mm off it), separated from the first (no strip point between
+    half that angle and it within 2 × :data:`CONTACT_BAND_MM` of that depth: a ball rolling in a
+    fillet of its own radius touches along the whole arc, which is one contact), and whose points
+    within :data:`CONTACT_BAND_MM` of that deepest form one tight patch (within
+    :data:`SECOND_SPREAD_DEG` of their mean).
+    """
+    kk, jj, q, th, N = _strip_points(shape, E, dz, n_phi, u, feed_deg, width)
+    cos_a = -(N @ np.asarray(n1, float))                  # cosine of each point's angle off n1
+    if not (cos_a < np.cos(np.radians(SECOND_DEG))).any():
+        return None
+    take = np.linspace(0, len(kk) - 1, min(len(kk), STRIP_DESIGN_POINTS)).astype(np.int64)
+    kk, q, th, cos_a = kk[take], q[take], th[take], cos_a[take]
+    far = cos_a < np.cos(np.radians(SECOND_DEG))
+    if not far.any():
+        return None
+    sd = design.signed_distance(_strip_world(shape, tip, dz, kk, th))
+    sd1 = float(design.signed_distance(np.asarray(c1, float)[None])[0])
+    sd2 = float(sd[far].min())
+    if not sd2 <= sd1 + SECOND_TOL_MM:
+        return None
+    # a contact that runs on from the first to the second (a fillet) is one contact: none of the
+    # strip between SECOND_DEG / 2 and SECOND_DEG off n1 lies that close to the model
+    between = (cos_a < np.cos(np.radians(SECOND_DEG / 2))) & ~far
+    if (between & (sd <= sd2 + 2 * CONTACT_BAND_MM)).any():
+        return None
+    deep = far & (sd <= sd2 + CONTACT_BAND_MM)
+    q, th = q[deep], th[deep]
+    q2, phi2 = _mean_angles(q, th, feed_deg)
+    m2 = material_normal(q2, phi2, feed_deg)
+    own = np.stack([-np.sin(q) * np.cos(th), -np.sin(q) * np.sin(th), np.cos(q)], axis=1)
+    if np.min(own @ m2) < np.cos(np.radians(SECOND_SPREAD_DEG)):
+        return None
+    return q2, phi2
 
 
 def _scan_program(pg, shape, wp, renderer, px_per_mm, mesh, predict_idx, tips, f, u, zlo, zhi, half,
@@ -566,8 +664,14 @@ def _scan_program(pg, shape, wp, renderer, px_per_mm, mesh, predict_idx, tips, f
 
 
 def _view_correction(gen, redo, pg, shape, wp, renderer, px_per_mm, cutting, bounds, mesh, coarse,
-                     tips, s_p, f, fd, gap, u, design=None):
-    """Claim 6: look along the estimated normal, zoomed; zoom further where still nothing."""
+                     tips, s_p, f, fd, gap, u, design=None, second=False):
+    """Claim 6: look along the estimated normal, zoomed; zoom further where still nothing.
+
+    With ``second`` the estimates are second contacts (:func:`_second_estimate`): of what the view
+    sees, the pixels nearer in normal to the estimate than to the generating point's and within
+    :data:`SECOND_DEG` of the estimate are the second contact (the first wall, seen obliquely, is
+    not), stored in the ``*2`` columns (:func:`_store_second`).
+    """
     R = shape.radius_mm
     for b0 in range(0, len(redo), PASSES_PER_BATCH):
         todo = redo[b0:b0 + PASSES_PER_BATCH]
@@ -592,7 +696,18 @@ def _view_correction(gen, redo, pg, shape, wp, renderer, px_per_mm, cutting, bou
             for r, k in enumerate(ks):
                 layers = [imgs[L * n2 + r] for L in range(N_LAYERS)]
                 surv, _ = _composite(layers, _own_path_strip(layers[3], shape, u[k], fd[k], f[k]))
-                if surv.any():
+                if second and surv.any():
+                    pn = material_normal(layers[3].b.astype(float), layers[3].a.astype(float), fd[k])
+                    cos2 = np.einsum("i...,i->...", pn, np.asarray(ovs[r].view_dir, float))
+                    cos1 = np.einsum("i...,i->...", pn, np.array([gen["nx"][k], gen["ny"][k], gen["nz"][k]]))
+                    surv &= (cos2 > cos1) & (cos2 > np.cos(np.radians(SECOND_DEG)))
+                    if surv.any():
+                        on = _on_design(design, ovs[r], layers[3], surv)
+                        q, phi = _angles(layers[3], on)
+                        _store_second(gen, k, ovs[r], layers[3], on, q, phi, fd[k])
+                    else:
+                        still.append(todo[r])
+                elif surv.any():
                     on = _on_design(design, ovs[r], layers[3], surv)
                     q, phi = _angles(layers[3], on)
                     # the engagement is read along the direction of every pixel the pass leaves,
@@ -604,7 +719,7 @@ def _view_correction(gen, redo, pg, shape, wp, renderer, px_per_mm, cutting, bou
                     _store(gen, k, ovs[r], layers[3], on, q, phi, fd[k], "normal", all_mask=surv)
                     if keep:
                         gen["eng_c"][k], gen["eng_n"][k] = ec, en
-                elif gen["view"][k] == "none":
+                elif second or gen["view"][k] == "none":
                     still.append(todo[r])
             todo = still
 
@@ -630,6 +745,19 @@ def _store(gen, slot, view, M, mask, q, phi, feed, how, all_mask=None):
     gen["nx"][slot], gen["ny"][slot], gen["nz"][slot] = nrm
     gen["n_px"][slot] = int(mask.sum())
     gen["view"][slot] = how
+
+
+SECOND_COLUMNS = ("gen2_x_mm", "gen2_y_mm", "gen2_z_mm", "rotation2_deg", "contact2_deg", "nx2", "ny2", "nz2")
+
+
+def _store_second(gen, slot, view, M, mask, q, phi, feed):
+    """Second contact of ``slot`` from the pixels ``mask`` (the ``*2`` columns)."""
+    rows, cols = np.nonzero(mask)
+    c = view.pixel_points(rows, cols, M.depth[mask]).mean(0)
+    values = (*c, phi, q, *material_normal(q, phi, feed))
+    for key, v in zip(SECOND_COLUMNS, values):
+        gen[key][slot] = v
+    gen["n2_px"][slot] = int(mask.sum())
 
 
 def ramp_deg(d):
@@ -785,7 +913,9 @@ def run(inputs: dict, params: dict, shard: tuple[int, int] | None = None) -> dic
                   **{k: pa.array(gen[k]) for k in ("gen_x_mm", "gen_y_mm", "gen_z_mm",
                                                    "rotation_deg", "contact_deg", "nx", "ny", "nz")},
                   "n_px": pa.array(gen["n_px"], pa.int32()),
-                  "view": pa.array(list(gen["view"]), pa.string())})
+                  "view": pa.array(list(gen["view"]), pa.string()),
+                  **{k: pa.array(gen[k]) for k in SECOND_COLUMNS},
+                  "n2_px": pa.array(gen["n2_px"], pa.int32())})
     e = pa.table({"program_id": pid, "pass_id": pa.array(chosen, pa.int32()),
                   "dz_mm": pa.array([x[1] for x in eng], pa.float64()),
                   "n_z": pa.array([x[0].shape[0] for x in eng], pa.int32()),

@@ -15,7 +15,7 @@ import pyarrow as pa
 import pytest
 
 from stages import InputError
-from stages.correct import (REFINE_MAX_RATIO, apply_corrected, contact_lines, corner_fans, corner_limit,
+from stages.correct import (REFINE_MAX_RATIO, apply_corrected, contact_lines, contact_moves, corner_fans, corner_limit,
                             correct_iteratively, correct_once, gouge_limit, vertex_moves)
 from stages.nc_writer import reverse_check, via_blocks, write_comp_table, write_ln_program, write_program
 from stages.parse import ARC_RADIUS_TOL_MM, parse_program
@@ -61,6 +61,62 @@ def test_perpendicular_normals_realise_both_errors():
     ni, nj = np.array([[1.0, 0, 0]]), np.array([[0, 0, 1.0]])
     m = vertex_moves(np.array([12.0]), ni, np.array([True]), np.array([-5.0]), nj, np.array([True]))
     np.testing.assert_allclose(m[0], [-12.0, 0.0, 5.0], atol=1e-12)
+
+
+def test_contact_moves_realise_both_walls_of_a_corner():
+    """Two pieces of a climb up a vertical corner, each touching the x wall (n = −x) and the y wall
+    (n = −y), whichever each calls its first contact: the vertex between them moves by
+    −(e_x n_x + e_y n_y) = (e_x, e_y, 0) exactly (closed form: perpendicular normals). One error on
+    one wall only (the old one generating point per pass) moves along that wall's normal alone."""
+    nx, ny = np.array([-1.0, 0, 0]), np.array([0, -1.0, 0])
+    e = np.array([[85.0, 150.0, 150.0, 85.0]])
+    n = np.array([[nx, ny, ny, nx]])
+    m = contact_moves(e, n, np.ones((1, 4), bool))
+    np.testing.assert_allclose(m[0], [85.0, 150.0, 0.0], atol=1e-3)
+    # the same wall twice with different errors: their mean along it
+    m = contact_moves(np.array([[80.0, 150.0, 150.0, 90.0]]), n, np.ones((1, 4), bool))
+    np.testing.assert_allclose(m[0], [85.0, 150.0, 0.0], atol=1e-3)
+    # a pass without its second contact counts with its first only
+    m = contact_moves(e, n, np.array([[True, False, True, False]]))
+    np.testing.assert_allclose(m[0], [85.0, 150.0, 0.0], atol=1e-3)
+    m = contact_moves(e, n, np.array([[True, False, False, False]]))
+    np.testing.assert_allclose(m[0], [85.0, 0.0, 0.0], atol=1e-3)
+
+
+def test_second_contacts_move_every_vertex_of_a_corner_climb_alike():
+    """The climb of the sample's pocket corner cut into pieces, each with its contacts on both
+    walls but which wall comes first alternating as it did piece by piece on the sample: every
+    vertex moves by (e_x, e_y) along −n (closed form), the climb stays straight. Without the second
+    contacts (or with ``correct.second_contacts`` off) the vertices zig-zag."""
+    lines = [b"%", b"O1", b"G90 G17 G21", b"T1 M6", b"S1000 M3", b"G0 X0.000 Y0.000 Z-20.000",
+             *[f"G1 Z{z:.3f} F100".encode() for z in (-18.0, -16.0, -14.0, -12.0, -10.0)],
+             b"G0 Z10.000", b"M30", b"%", b""]
+    blocks, _ = parse_program(b"\n".join(lines), "t", "p")
+    passes = split_blocks(blocks, dict(SPLIT, split=dict(SPLIT["split"], merge_max_mm=0.0)))
+    cut = passes.filter(pa.compute.not_equal(passes.column("motion"), 0))
+    k = cut.num_rows
+    assert k == 5
+    ex, ey = 85.0, 150.0
+    first_y = np.arange(k) % 3 == 2                          # every third piece calls the y wall first
+    n1 = np.where(first_y[:, None], [0.0, -1.0, 0.0], [-1.0, 0.0, 0.0])
+    n2 = np.where(first_y[:, None], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0])
+    e1, e2 = np.where(first_y, ey, ex), np.where(first_y, ex, ey)
+
+    def moves(tab, second=True):
+        c = correct_once(blocks, passes, tab, {"correct": {"max_move_um": 500.0, "gouge_limit": False,
+                                                          "second_contacts": second}})
+        mv = np.stack([c.column(f"{a}_new_mm").to_numpy() - c.column(f"{a}_mm").to_numpy() for a in "xyz"], 1) * 1000
+        z = c.column("z_mm").to_numpy()
+        return mv[(z > -20.0 + 1e-6) & (z < -10.0 - 1e-6)]        # the vertices between the pieces
+    one = _errors(cut, e1, n1)
+    both = (one.append_column("err2_um", pa.array(e2)).append_column("nx2", pa.array(n2[:, 0]))
+            .append_column("ny2", pa.array(n2[:, 1])).append_column("nz2", pa.array(n2[:, 2])))
+    mv = moves(both)
+    assert len(mv) == 4
+    np.testing.assert_allclose(mv, np.tile([ex, ey, 0.0], (4, 1)), atol=1e-3)
+    zig = moves(one)
+    assert np.ptp(zig[:, 1]) > 100.0                          # y moves 0 or ~150 from vertex to vertex
+    np.testing.assert_array_equal(moves(both, second=False), zig)     # the option off: as before
 
 
 def test_oblique_normals_least_squares_magnitude():

@@ -155,7 +155,13 @@ def test_stages_chain_on_tables(tmp_path):
         "gen_x_mm": [5.0, 10.0 - R], "gen_y_mm": [-R, -5.0], "gen_z_mm": z0 + 1.0,
         "rotation_deg": [-90.0, -90.0], "contact_deg": [90.0, 90.0],
         "nx": [-r[0] for r in right], "ny": [-r[1] for r in right], "nz": [0.0, 0.0],
-        "n_px": pa.array([10] * n, pa.int32()), "view": ["bottom"] * n})
+        "n_px": pa.array([10] * n, pa.int32()), "view": ["bottom"] * n,
+        # pass 1 has a second contact where its first is, its normal turned 90° about z: the error
+        # there is the same deflection vector along the other normal (pass 0 has none)
+        "gen2_x_mm": [np.nan, 10.0 - R], "gen2_y_mm": [np.nan, -5.0], "gen2_z_mm": [np.nan, z0[1] + 1.0],
+        "rotation2_deg": [np.nan, -90.0], "contact2_deg": [np.nan, 90.0],
+        "nx2": [np.nan, -right[1][1]], "ny2": [np.nan, right[1][0]], "nz2": [np.nan, 0.0],
+        "n2_px": pa.array([0, 10], pa.int32())})
     generating = schemas.check("generating", generating)
     params = {"tool": tool, "material": MAT, "machine": {"rapid_mm_min": 30000.0, "frf": STIFF}}
     f = schemas.check("forces", forces_stage.run(
@@ -172,3 +178,8 @@ def test_stages_chain_on_tables(tmp_path):
     lag = np.degrees(1.0 * np.tan(np.radians(30.0)) / R)
     cands = np.mod(90.0 + lag - 180.0 * np.arange(2), 360)
     assert cands[e["flute"][0]] == pytest.approx(e["spindle_deg"][0])
+    # the second contact: none on pass 0; on pass 1 the deflection vector along its normal + profile
+    assert np.isnan(e["err2_um"][0]) and np.isnan(e["nx2"][0])
+    n2 = np.array([-right[1][1], right[1][0]])
+    assert e["err2_um"][1] == pytest.approx(e["defl_x_um"][1] * n2[0] + e["defl_y_um"][1] * n2[1] + 1.0, rel=1e-9)
+    assert abs(e["err2_um"][1] - e["err_um"][1]) > 1.0          # another normal, another error

@@ -541,3 +541,99 @@ def test_pieces_of_a_line_are_predicted_where_they_leave_the_surface(tmp_path, m
     assert off.max() < 0.06, off.max()                   # within a pixel
     monkeypatch.setattr(cut_filter, "line_interior", lambda pg, cuts: np.zeros(len(pg.pass_id), bool))
     assert np.nanmax(np.abs(gen_y() - mid_y[inside])) > 0.15   # the rule before: 0.24 mm at q ≥ 62°
+
+
+def _climb(tmp_path, design, stock, xc, yc, zs, name):
+    """Passes of one straight climb at (xc, yc) through heights ``zs`` and the middle one predicted."""
+    design.export(tmp_path / "design.stl")
+    stock.export(tmp_path / "stock.stl")
+    k = len(zs) - 1
+    passes = pa.table({
+        "program_id": [name] * k, "pass_id": pa.array(range(k), pa.int32()),
+        "block_no": pa.array([0] * k, pa.int32()), "line_no": pa.array([1] * k, pa.int32()),
+        "motion": pa.array([1] * k, pa.int8()),
+        "x0_mm": [xc] * k, "y0_mm": [yc] * k, "z0_mm": zs[:-1], "x1_mm": [xc] * k, "y1_mm": [yc] * k,
+        "z1_mm": zs[1:], "feed_mm_min": [3000.0] * k, "spindle_rpm": [12000.0] * k,
+        "tool": pa.array([1] * k, pa.int32()), "t_start_s": np.arange(k, dtype=float),
+        "t_end_s": np.arange(1, k + 1, dtype=float)})
+    mid = k // 2
+    cf = pa.table({"pass_id": pa.array([mid], pa.int32()), "is_cutting": [True], "pred_x_mm": [xc],
+                   "pred_y_mm": [yc], "pred_z_mm": [0.5 * (zs[mid] + zs[mid + 1])]})
+    ap = pa.table({"pass_id": pa.array([mid], pa.int32()), "predict": [True]})
+    return {"passes": passes, "stock": str(tmp_path / "stock.stl"), "cut_filter": cf, "angle_prune": ap,
+            "nominal": str(tmp_path / "design.stl")}
+
+
+def test_a_ball_climbing_a_vertical_corner_has_a_contact_on_each_wall(tmp_path):
+    """A ball climbs the vertical corner of the walls x = 0 and y = 5 (0.05 mm of finishing stock on
+    each, the design model's walls under it), its axis at (−5, 0): its side touches both walls, at
+    (0, 0, z) with normal −x and at (−5, 5, z) with normal −y, z from the ball's equator up (closed
+    form). One generating point
+    stands for one wall; the second contact gives the other, each on its wall within the render's
+    accuracy, q 90°."""
+    import trimesh
+    R, a_e = 5.0, 0.05
+    design = trimesh.util.concatenate([trimesh.creation.box(bounds=[[0.0, -20, -30], [20, 20, 0]]),
+                                       trimesh.creation.box(bounds=[[-30, R, -30], [20, 20, 0]])])
+    stock = trimesh.util.concatenate([trimesh.creation.box(bounds=[[-a_e, -20, -30], [20, 20, 0]]),
+                                      trimesh.creation.box(bounds=[[-30, R - a_e, -30], [20, 20, 0]])])
+    tool = {"type": "ball", "diameter_mm": 2 * R, "flutes": 2, "stickout_mm": 40.0}
+    params = {"tool": tool, "render": {"backend": "auto", "px_per_mm": 20}}
+    inputs = _climb(tmp_path, design, stock, -R, 0.0, np.array([-20.0, -15.0, -10.0, -5.0]), "corner")
+    g = generating.run(inputs, params)["generating"].to_pylist()[0]
+    print(f"\nfirst: {g['view']} {g['n_px']} px, n ({g['nx']:.3f}, {g['ny']:.3f}, {g['nz']:.3f}), C ({g['gen_x_mm']:.3f}, "
+          f"{g['gen_y_mm']:.3f}, {g['gen_z_mm']:.3f}); second: {g['n2_px']} px, n ({g['nx2']:.3f}, {g['ny2']:.3f}, "
+          f"{g['nz2']:.3f}), C ({g['gen2_x_mm']:.3f}, {g['gen2_y_mm']:.3f}, {g['gen2_z_mm']:.3f}), q {g['contact2_deg']:.2f}")
+    walls = {"x": (np.array([-1.0, 0, 0]), np.array([0.0, 0.0])), "y": (np.array([0, -1.0, 0]), np.array([-R, R]))}
+    found = []
+    for sfx in ("", "2"):
+        n = np.array([g["nx" + sfx], g["ny" + sfx], g["nz" + sfx]])
+        c = np.array([g["gen" + sfx + "_x_mm"], g["gen" + sfx + "_y_mm"]])
+        wall = max(walls, key=lambda w: float(n @ walls[w][0]))
+        assert n @ walls[wall][0] > np.cos(np.radians(3.0))
+        assert np.linalg.norm(c - walls[wall][1]) < 0.3
+        # from the ball's equator (tip + R) up: the straight side above it runs along the wall too
+        assert -12.5 + R - 0.5 < g["gen" + sfx + "_z_mm"] < -12.5 + R + 2.5
+        found.append(wall)
+    assert sorted(found) == ["x", "y"]
+    assert g["n2_px"] > 20 and abs(g["contact2_deg"] - 90.0) < 3.0
+
+
+def test_a_ball_in_a_fillet_of_its_own_radius_has_one_contact(tmp_path):
+    """A ball rides along the foot of a wall rounded with its own radius: it touches the whole
+    quarter arc, one contact; no second one (the arc's ends lie 90° apart, but the contact between
+    them is continuous)."""
+    import trimesh
+    R, a_e = 5.0, 0.05
+    # the floor z = 0 and the wall x = 0 joined by a fillet of radius R (axis at x = −R, z = R),
+    # a prism along y; the stock is the same offset by a_e (floor z = a_e, wall x = −a_e, fillet
+    # radius R − a_e about the same axis)
+    def part(o):
+        t = np.radians(np.linspace(0.0, -90.0, 46))
+        arc = np.stack([-R + (R - o) * np.cos(t), R + (R - o) * np.sin(t)], 1)     # (−o, R) … (−R, o)
+        A, B, B1, C, D, E, O = (-30.0, -5.0), (10.0, -5.0), (10.0, o), (10.0, 30.0), (-o, 30.0), (-30.0, o), (-o, o)
+        v = np.vstack([[A, B, B1, C, D, E, O], arc])
+        n = len(arc)
+        P = lambda i: 7 + i                                                         # noqa: E731
+        faces = [(0, 1, 2), (0, 2, 6), (0, 6, P(n - 1)), (0, P(n - 1), 5), (6, 2, 3), (6, 3, P(0)), (P(0), 3, 4)]
+        faces += [(6, P(i + 1), P(i)) for i in range(n - 1)]
+        m = trimesh.creation.extrude_triangulation(v, np.array(faces), 40.0)
+        m.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))   # 2-D y → z, extrusion → −y
+        m.apply_translation([0, 20.0, 0])
+        m.fix_normals()
+        return m
+    design, stock = part(0.0), part(a_e)
+    tool = {"type": "ball", "diameter_mm": 2 * R, "flutes": 2, "stickout_mm": 40.0}
+    params = {"tool": tool, "render": {"backend": "auto", "px_per_mm": 20}}
+    inputs = _climb(tmp_path, design, stock, -R, 0.0, np.array([0.0, 0.0, 0.0, 0.0]), "fillet")
+    passes = inputs["passes"]
+    ys = np.array([-9.0, -3.0, 3.0, 9.0])
+    passes = passes.set_column(passes.schema.get_field_index("y0_mm"), "y0_mm", pa.array(ys[:-1]))
+    passes = passes.set_column(passes.schema.get_field_index("y1_mm"), "y1_mm", pa.array(ys[1:]))
+    inputs["passes"] = passes
+    inputs["cut_filter"] = pa.table({"pass_id": pa.array([1], pa.int32()), "is_cutting": [True], "pred_x_mm": [-R],
+                                     "pred_y_mm": [0.0], "pred_z_mm": [0.0]})
+    g = generating.run(inputs, params)["generating"].to_pylist()[0]
+    print(f"\n{g['view']} {g['n_px']} px, q {g['contact_deg']:.1f}, second {g['n2_px']} px")
+    assert g["view"] != "none"
+    assert g["n2_px"] == 0 and np.isnan(g["contact2_deg"])
