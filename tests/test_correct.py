@@ -872,7 +872,8 @@ def test_stage_run_matches_schema():
                                                                    "correct.deflection_vector", "correct.gouge_limit",
                                                                    "correct.gouge_lines", "correct.refine_across_path",
                                                                    "correct.hold_corners", "correct.guard_fans",
-                                                                   "correct.normal_tol_deg", "tool")
+                                                                   "correct.normal_tol_deg", "correct.second_contacts",
+                                                                   "tool")
 
 
 def test_incremental_program_random_moves_reverse_check():
