@@ -198,6 +198,11 @@ class Correct(_Strict):
     # --second-walls: 3,578 points, 80.6 µm before) 123.5 / 119.6 % against 129.2 / 114.0 %
     # (docs/closed_loop_samples.md)
     second_contacts: bool = False
+    # rounds 2…: a pass whose predicted normal turned further than this (degrees) from its round-1
+    # normal keeps its round-1 error (None: off; stages.correct.on_first_surface): the moved ball
+    # touches the surface elsewhere or another surface (the sample's convex row y 61.2, the pocket's
+    # corners), and that error is not the one the pass was corrected for
+    keep_surface_deg: Optional[float] = Field(None, gt=0, le=180)
 
 
 class Measurements(_Strict):

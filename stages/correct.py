@@ -109,12 +109,21 @@ OUTPUTS = ("corrected",)
 PARAMS = ("correct.max_move_um", "correct.relax", "correct.accelerate", "correct.deflection_vector",
           "correct.gouge_limit", "correct.gouge_lines", "correct.refine_across_path",
           "correct.hold_corners", "correct.guard_fans", "correct.normal_tol_deg", "correct.second_contacts",
-          "tool")
+          "correct.keep_surface_deg", "tool")
+
+def used_params(params: dict) -> dict:
+    """``correct.keep_surface_deg`` enters the cache key only when set: runs without it keep their cached rounds."""
+    cor = params.get("correct")
+    if isinstance(cor, dict) and cor.get("keep_surface_deg") is None:
+        params = {**params, "correct": {k: v for k, v in cor.items() if k != "keep_surface_deg"}}
+    return params
+
 
 DEFAULTS = {"max_move_um": 50.0, "tol_um": 0.1, "max_iter": 5, "relax": 1.0, "ln_normals": False,
             "comp_table": False, "deflection_vector": False, "accelerate": False,
             "gouge_limit": True, "gouge_lines": False, "refine_across_path": False,
-            "hold_corners": False, "guard_fans": False, "normal_tol_deg": None, "second_contacts": False}
+            "hold_corners": False, "guard_fans": False, "normal_tol_deg": None, "second_contacts": False,
+            "keep_surface_deg": None}
 _PLANE_AXES = {17: (0, 1, 2), 18: (2, 0, 1), 19: (1, 2, 0)}  # as stages.parse: (first, second, normal)
 _EPS_UM = 1e-9
 # normals of the two passes at a vertex closer than this are one normal for the least-squares
@@ -1208,6 +1217,34 @@ def errors_on_passes(errors: pa.Table, passes_from: pa.Table, passes_to: pa.Tabl
                           pa.array(target[ok], out.schema.field("pass_id").type))
 
 
+def on_first_surface(errors: pa.Table, first: pa.Table | None, max_deg: float) -> pa.Table:
+    """The rows of ``errors`` whose normal lies within ``max_deg`` of the same pass's normal in ``first``.
+
+    A ball moved along its contact normal touches the surface at the same normal; a later round
+    whose prediction of a pass comes back with another normal has the ball touching elsewhere:
+    the path slid along the surface, or moved far enough that another surface or the rest stock
+    beside it comes first. Its error is then not the one the pass was corrected for, and its normal
+    sends the vertex across the row (on the sample's convex row y 61.2, normals of
+    (−0.67, 0, 0.74) in round 1 came back 10–16° towards −y with −280 instead of −150 µm in round
+    2, and (−0.47, −0.72, 0.52) with +44 µm in round 3; the vertices stepped 0.2–0.8 mm along y).
+    The dropped rows are filled from ``first`` by :func:`with_missing_from`: such a pass keeps its
+    round-1 error, as a pass the round did not predict. Passes without a row in ``first`` and rows
+    without a normal are kept.
+    """
+    if first is None or first.num_rows == 0 or errors.num_rows == 0:
+        return errors
+    fid = _col(first, "pass_id", np.int64)
+    order = np.argsort(fid, kind="stable")
+    eid = _col(errors, "pass_id", np.int64)
+    at = np.minimum(np.searchsorted(fid[order], eid), fid.size - 1)
+    known = fid[order][at] == eid
+    n_first = _xyz(first, ("nx", "ny", "nz"))[order][at]
+    cos = np.einsum("ij,ij->i", _xyz(errors, ("nx", "ny", "nz")), n_first)
+    # a row without a finite normal (no prediction) is left to with_missing_from as it is
+    swung = known & np.isfinite(cos) & (cos < np.cos(np.radians(max_deg)))
+    return errors.filter(pa.array(~swung)) if swung.any() else errors
+
+
 def with_missing_from(errors: pa.Table, fallback: pa.Table | None) -> pa.Table:
     """``errors`` plus the rows of ``fallback`` (same passes) for passes ``errors`` has no finite error for."""
     if fallback is None or fallback.num_rows == 0:
@@ -1233,7 +1270,10 @@ def run(inputs: dict, params: dict) -> dict[str, pa.Table]:
     round's render did not predict (a moved pass whose cut the neighbours now cover in the pixel
     grid, a generating view that found nothing) keeps its round-1 error (``first_errors``, the
     prediction on the original program): without it the vertex it shares with a predicted pass
-    followed that pass alone, and a pocket corner's 140 µm error came back uncorrected.
+    followed that pass alone, and a pocket corner's 140 µm error came back uncorrected. With
+    ``correct.keep_surface_deg`` a pass whose new normal lies further than that from its round-1
+    normal (the moved ball touches the surface elsewhere, or another surface) keeps its round-1
+    error too (:func:`on_first_surface`).
     From round 2 a vertex whose change does not shrink from round to round takes half its step
     (again halved while it does not contract; ``correct.relax`` caps the fraction): on the sample's
     boss foot, where generating points jump between rounds and heavy cuts' errors change with the
@@ -1247,6 +1287,9 @@ def run(inputs: dict, params: dict) -> dict[str, pa.Table]:
     relax = None
     if inputs.get("round_passes") is not None:
         errors = errors_on_passes(errors, inputs["round_passes"], inputs["passes"])
+        keep_deg = _params(params)["keep_surface_deg"]
+        if keep_deg is not None:
+            errors = on_first_surface(errors, inputs.get("first_errors"), float(keep_deg))
         errors = with_missing_from(errors, inputs.get("first_errors"))
         relax = float(_params(params)["relax"])
     shape = None

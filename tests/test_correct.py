@@ -873,7 +873,7 @@ def test_stage_run_matches_schema():
                                                                    "correct.gouge_lines", "correct.refine_across_path",
                                                                    "correct.hold_corners", "correct.guard_fans",
                                                                    "correct.normal_tol_deg", "correct.second_contacts",
-                                                                   "tool")
+                                                                   "correct.keep_surface_deg", "tool")
 
 
 def test_incremental_program_random_moves_reverse_check():
@@ -1067,6 +1067,84 @@ def test_pass_missing_in_a_later_round_keeps_its_round_one_error():
     assert at.sum() == 2
     np.testing.assert_allclose(got.column("move_um").to_numpy()[at], 6.0, rtol=1e-9)
     np.testing.assert_allclose(without.column("move_um").to_numpy()[at], 7.0, rtol=1e-9)
+
+
+def test_on_first_surface_drops_rows_whose_normal_turned_past_the_limit():
+    """Normals turned by 0°, 29°, 31°, 90° and 180° from round 1 (about an axis of no special
+    direction): the rows at 31° and more are another surface; a pass round 1 did not predict and a
+    row without a normal stay."""
+    from stages.correct import on_first_surface
+    rng = np.random.default_rng(7)
+    n1 = rng.normal(size=(7, 3))
+    n1 /= np.linalg.norm(n1, axis=1)[:, None]
+    turn = np.radians([0.0, 29.0, 31.0, 90.0, 180.0, 45.0, 0.0])
+    axis = np.cross(n1, rng.normal(size=(7, 3)))
+    axis /= np.linalg.norm(axis, axis=1)[:, None]
+    # Rodrigues: n1 rotated about an axis perpendicular to it
+    nk = n1 * np.cos(turn)[:, None] + np.cross(axis, n1) * np.sin(turn)[:, None]
+    nk[6] = np.nan                                           # no prediction
+    first = pa.table({"pass_id": np.arange(6), "err_um": np.zeros(6), "nx": n1[:6, 0], "ny": n1[:6, 1],
+                      "nz": n1[:6, 2]})
+    later = pa.table({"pass_id": np.array([4, 0, 1, 2, 3, 9, 5]), "err_um": np.arange(7.0),
+                      "nx": nk[[4, 0, 1, 2, 3, 5, 6], 0], "ny": nk[[4, 0, 1, 2, 3, 5, 6], 1],
+                      "nz": nk[[4, 0, 1, 2, 3, 5, 6], 2]})
+    # pass 9 is not in round 1 (kept, though its normal nk[5] is 45° from n1[5]); pass 5's row
+    # carries nk[6] = NaN: no prediction, kept for with_missing_from
+    kept = on_first_surface(later, first, 30.0).column("pass_id").to_pylist()
+    assert kept == [0, 1, 9, 5]
+    assert on_first_surface(later, None, 30.0).num_rows == 7
+    assert on_first_surface(later, first, max_deg=95.0).column("pass_id").to_pylist() == [0, 1, 2, 3, 9, 5]
+
+
+def test_keep_surface_deg_enters_the_cache_key_only_when_set():
+    """Workflows without the option keep the correct stage's cache key (their cached rounds)."""
+    from stages import correct
+    off = {"correct": {"max_move_um": 450.0, "keep_surface_deg": None}, "tool": {"diameter_mm": 10.0}}
+    assert correct.used_params(off) == {"correct": {"max_move_um": 450.0}, "tool": {"diameter_mm": 10.0}}
+    assert off["correct"]["keep_surface_deg"] is None                 # the caller's dict is left alone
+    on = {"correct": {"max_move_um": 450.0, "keep_surface_deg": 10.0}, "tool": {"diameter_mm": 10.0}}
+    assert correct.used_params(on) == on
+
+
+def test_pass_predicted_on_another_surface_keeps_its_round_one_error():
+    """Round 2 predicts one pass with its normal turned 66° (the moved ball touches another
+    surface first) and an error of the other sign: with correct.keep_surface_deg (10°) its vertices
+    move as if that pass had kept its round-1 error and normal; without it they follow the other
+    surface."""
+    from stages.correct import run
+    data, blocks, passes = _load(SAMPLES[1])
+    passes = passes.sort_by("pass_id")
+    n = passes.num_rows
+    normals = np.tile([0.6, 0.0, 0.8], (n, 1))
+    first = _errors(passes, np.full(n, -50.0), normals)
+    r1 = run({"blocks": blocks, "passes": passes, "errors": first}, {"correct": {}})["corrected"]
+    bno, bend = passes.column("block_no").to_numpy(), passes.column("block_end").to_numpy()
+    motion = dict(zip(blocks.column("block_no").to_pylist(), blocks.column("motion").to_pylist()))
+    single = (bno == bend) & np.array([motion[b] == 1 for b in bno])
+    single &= np.concatenate([[False], np.diff(bno) == 1]) & np.concatenate([np.diff(bno) == 1, [False]])
+    other = int(np.flatnonzero(single[1:-1] & single[:-2] & single[2:])[len(single) // 4] + 1)
+    n2 = normals.copy()
+    n2[other] = [0.0, -np.sin(np.radians(60.0)), np.cos(np.radians(60.0))]   # 66.4° from (0.6, 0, 0.8)
+    e2 = np.full(n, -60.0)
+    e2[other] = 120.0
+    want_e = e2.copy()
+    want_e[other] = -50.0
+    ins = {"blocks": blocks, "passes": passes, "corrected": r1, "round_passes": passes, "first_errors": first}
+    kept = {"correct": {"relax": 1.0, "max_move_um": 500.0, "keep_surface_deg": 10.0}}
+    plain = {"correct": {"relax": 1.0, "max_move_um": 500.0}}
+    got = run({**ins, "errors": _errors(passes, e2, n2)}, kept)["corrected"]
+    want = run({**ins, "errors": _errors(passes, want_e, normals)}, plain)["corrected"]
+    without = run({**ins, "errors": _errors(passes, e2, n2)}, plain)["corrected"]
+    for c in ("x_new_mm", "y_new_mm", "z_new_mm", "move_um"):
+        np.testing.assert_allclose(got.column(c).to_numpy(), want.column(c).to_numpy(), rtol=0, atol=1e-12)
+    # the pass's two vertices: 55 µm out along (0.6, 0, 0.8) (para 0084 on −50 and −60 µm along one
+    # normal), no y; without the rule they step along the other surface's normal
+    at = np.isin(got.column("block_no").to_numpy(), [bno[other] - 1, bno[other]])
+    assert at.sum() == 2
+    np.testing.assert_allclose(got.column("move_um").to_numpy()[at], 55.0, rtol=1e-9)
+    assert np.all(np.abs(got.column("y_new_mm").to_numpy()[at] - got.column("y_mm").to_numpy()[at]) < 1e-12)
+    dy = without.column("y_new_mm").to_numpy()[at] - without.column("y_mm").to_numpy()[at]
+    assert np.all(np.abs(dy) > 0.02)
 
 
 def _linear_rounds(relax: float, e0: float, k: float, rounds: int, accelerate: bool = False):
