@@ -201,7 +201,9 @@ class Correct(_Strict):
     # rounds 2…: a pass whose predicted normal turned further than this (degrees) from its round-1
     # normal keeps its round-1 error (None: off; stages.correct.on_first_surface): the moved ball
     # touches the surface elsewhere or another surface (the sample's convex row y 61.2, the pocket's
-    # corners), and that error is not the one the pass was corrected for
+    # corners), and that error is not the one the pass was corrected for. Off by default: measured
+    # once, with accelerate, on the whole sample program: 10° 47.1 / 44.6 % after two / three rounds
+    # against 46.5 / 49.3 % (30°: 48.2 / 48.1 %), the cylinder unchanged
     keep_surface_deg: Optional[float] = Field(None, gt=0, le=180)
 
 
