@@ -111,6 +111,7 @@ PARAMS = ("correct.max_move_um", "correct.relax", "correct.accelerate", "correct
           "correct.hold_corners", "correct.guard_fans", "correct.normal_tol_deg", "correct.second_contacts",
           "correct.keep_surface_deg", "tool")
 
+
 def used_params(params: dict) -> dict:
     """``correct.keep_surface_deg`` enters the cache key only when set: runs without it keep their cached rounds."""
     cor = params.get("correct")
@@ -1226,7 +1227,8 @@ def on_first_surface(errors: pa.Table, first: pa.Table | None, max_deg: float) -
     beside it comes first. Its error is then not the one the pass was corrected for, and its normal
     sends the vertex across the row (on the sample's convex row y 61.2, normals of
     (−0.67, 0, 0.74) in round 1 came back 10–16° towards −y with −280 instead of −150 µm in round
-    2, and (−0.47, −0.72, 0.52) with +44 µm in round 3; the vertices stepped 0.2–0.8 mm along y).
+    2 and 35–90° turned, onto a wall facing −y, in round 3; the rounds asked its vertices for steps
+    of 0.2–0.8 mm along y).
     The dropped rows are filled from ``first`` by :func:`with_missing_from`: such a pass keeps its
     round-1 error, as a pass the round did not predict. Passes without a row in ``first`` and rows
     without a normal are kept.
