@@ -24,7 +24,15 @@ instead: the piecewise-linear path move that best cancels every probe point's er
 point's own normal (global least squares), not one error per pass. It shows whether the per-pass
 representation is what holds the loop.
 
-    python3 bench/closed_loop_vm_samples.py RUN_DIR [--rounds 3] [--max-move 300] [--fit-points 0.3]
+With ``--secant`` step 2 is the pipeline's rounds (``stages.correct.run`` with ``correct.accelerate``)
+fed the machine's error instead of the prediction: each pass's residual becomes the error of the
+path it was machined on (:func:`errors_of_path`), and the fixed point moves the original program
+with the secant step. It shows what the pipeline's rounds reach when the prediction is exact, pass
+by pass. ``--vm-step-mm`` machines at the pipeline bench's finer resolution (its run directory's
+original program must have been machined at the same, or it is machined again).
+
+    python3 bench/closed_loop_vm_samples.py RUN_DIR [--rounds 3] [--max-move 300] [--fit-points 0.3 | --secant]
+                                            [--vm-step-mm 0.5]
 """
 from __future__ import annotations
 
@@ -55,6 +63,51 @@ def errors_from_points(pass_id, err_um, normals, min_points: int = 1):
     keep = cnt >= min_points
     return pa.table({"pass_id": ids[keep], "err_um": mean(np.asarray(err_um, float))[keep],
                      "nx": n[keep, 0], "ny": n[keep, 1], "nz": n[keep, 2]})
+
+
+def errors_of_path(errors, passes, corrected):
+    """The measured residuals of ``errors`` (against the original surface) as errors of the path
+    they were machined on, the form the pipeline's rounds predict: e(P) = r − m·n.
+
+    The path P of a round is the original moved by m (µm); its rigid cut lies m·n off the original
+    surface (n the outward normal: a move into the material is negative), so the machined surface
+    r = m·n + e(P). m is the mean of the moves of the pass's two end vertices (the blocks are cut at
+    the pass ends with ``correct.via_points``: each pass starts at the end of block ``block_no`` − 1
+    and ends at the end of ``block_end``); ``corrected`` None (the original program): m = 0.
+    """
+    import pyarrow as pa
+    if corrected is None:
+        return errors
+    bn = corrected.column("block_no").to_numpy()
+    col = lambda n: corrected.column(n).to_numpy()  # noqa: E731
+    move = 1000.0 * np.stack([col(f"{a}_new_mm") - col(f"{a}_mm") for a in "xyz"], 1)
+    at = lambda b: np.where((b >= bn[0])[:, None], move[np.clip(np.searchsorted(bn, b), 0, bn.size - 1)], 0.0)  # noqa: E731
+    pid = passes.column("pass_id").to_numpy()
+    k = np.searchsorted(pid, errors.column("pass_id").to_numpy())
+    m = 0.5 * (at(passes.column("block_no").to_numpy()[k] - 1) + at(passes.column("block_end").to_numpy()[k]))
+    n = np.stack([errors.column(c).to_numpy() for c in ("nx", "ny", "nz")], 1)
+    e = errors.column("err_um").to_numpy() - np.einsum("ij,ij->i", m, n)
+    return errors.set_column(errors.schema.get_field_index("err_um"), "err_um", pa.array(e))
+
+
+def measured_round(blocks, passes, errors, corrected, params: dict, secant: bool, generating=None,
+                   tool_shape=None, node_moves=None):
+    """One round of the measured loop: the ``corrected`` table after ``errors`` (residuals measured
+    on the program of the last round, ``corrected``; None in round 1).
+
+    ``secant`` False: the residuals' moves are added to the last round's (``relax=None``).
+    ``secant`` True: the pipeline's rounds (``stages.correct.run``): the fixed point P = P0 − e(P)·n
+    on the errors of the machined path (:func:`errors_of_path`), moved from the original program,
+    with the halving rule (``correct.relax``) and the secant step (``correct.accelerate``).
+    """
+    from stages.correct import apply_corrected, correct_once
+    if secant:
+        return correct_once(blocks, passes, errors_of_path(errors, passes, corrected), params,
+                            previous=corrected, relax=float(params["correct"].get("relax", 1.0)),
+                            accelerate=True, generating=generating, tool_shape=tool_shape)
+    current = blocks if corrected is None else apply_corrected(blocks, corrected)
+    return correct_once(current, passes, errors, params, previous=corrected, relax=None,
+                        generating=generating, tool_shape=tool_shape, node_moves=node_moves)
 
 
 def node_moves_from_points(passes, pass_id, points, normals, err_um, radius_mm: float, damp: float):
@@ -99,7 +152,6 @@ def main():
     import yaml
 
     import closed_loop_pipeline_samples as bench
-    from stages.correct import apply_corrected, correct_once
     from stages.geometry import tool_from_params
     from stages.nc_writer import reverse_check, write_program
 
@@ -111,6 +163,13 @@ def main():
     ap.add_argument("--fit-points", type=float, default=None, metavar="DAMP",
                     help="pass-end moves fitted to every probe point (node_moves_from_points) with this "
                          "damping, instead of para 0084's from one error per pass")
+    ap.add_argument("--secant", action="store_true",
+                    help="the pipeline's rounds instead of accumulated residuals: the fixed point on the "
+                         "measured error of each round's path (errors_of_path) with the secant step "
+                         "(correct.accelerate) and the halving rule")
+    ap.add_argument("--vm-step-mm", type=float, default=None,
+                    help="the machine's deflection resolution along the path (the pipeline bench's option; "
+                         "its run directory's original program must be machined at the same)")
     args = ap.parse_args()
     run = args.run.resolve()
     wf = yaml.safe_load((run / "wf1.yaml").read_text())
@@ -130,8 +189,11 @@ def main():
     base = float(np.sqrt(np.mean(err ** 2)))
     print(f"{run.name}: {len(pts)} probe points ({xs.min():.0f}–{xs.max():.0f}, {ys.min():.0f}–{ys.max():.0f} mm), "
           f"error RMS {base:.3f} um before")
-    tag = "" if args.fit_points is None else f"fit{args.fit_points:g}_"     # the files of this mode
-    corrected, current, report = None, blocks, {"run": str(run), "before_rms_um": base, "rounds": []}
+    if args.secant and args.fit_points is not None:
+        raise SystemExit("--secant and --fit-points are two different rounds; give one")
+    tag = ("" if args.fit_points is None else f"fit{args.fit_points:g}_") + ("secant_" if args.secant else "")
+    tag += "" if args.vm_step_mm is None else f"vm{args.vm_step_mm:g}_"     # the files of this mode
+    corrected, report = None, {"run": str(run), "before_rms_um": base, "rounds": []}
     for k in range(1, args.rounds + 1):
         errors = errors_from_points(pts.pass_id.to_numpy(), err, normals)
         fit = None
@@ -139,16 +201,15 @@ def main():
             fit, residual = node_moves_from_points(passes, pts.pass_id.to_numpy(), pts[["x_mm", "y_mm", "z_mm"]].to_numpy(),
                                                    normals, err, wf["tool"]["diameter_mm"] / 2.0, args.fit_points)
             print(f"  round {k}: the fit leaves {np.sqrt(np.mean(residual ** 2)):.2f} um RMS at the points", flush=True)
-        corrected = correct_once(current, passes, errors, params, previous=corrected, relax=None,
-                                 generating=generating, tool_shape=shape, node_moves=fit)
-        current = apply_corrected(blocks, corrected)
+        corrected = measured_round(blocks, passes, errors, corrected, params, args.secant,
+                                   generating=generating, tool_shape=shape, node_moves=fit)
         text = write_program(src, blocks, corrected)
         if not reverse_check(text, blocks, corrected)["ok"]:
             raise SystemExit(f"round {k}: the written program does not parse back to the corrected table")
         name = f"{k} {tag.replace('_', ' ')}measured round{'s' if k > 1 else ''}"
         (run / f"{tag}measured_{k}.nc").write_bytes(text)
         res = bench.vm_errors(window, {"original": src, name: text}, wf, cache=run.parent / "vm_cache",
-                              dump=run / f"points_{tag}measured_{k}.parquet")
+                              dump=run / f"points_{tag}measured_{k}.parquet", vm_step_mm=args.vm_step_mm)
         err = pq.read_table(run / f"points_{tag}measured_{k}.parquet").column(f"err_{name.replace(' ', '_')}_um").to_numpy()
         v = res[name]
         move = corrected.column("move_um").to_numpy()

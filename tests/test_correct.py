@@ -2089,3 +2089,42 @@ def test_pass_end_moves_fitted_to_probe_points_are_the_moves_that_made_their_err
     np.testing.assert_allclose(dz[on_row], np.interp(xs[on_row], np.arange(11.0), node_z), atol=1e-3)
     with pytest.raises(InputError, match="node_moves"):
         correct_once(blocks, passes, errors, {"correct": {}}, node_moves=moves[:-1])
+
+
+def test_measured_secant_rounds_cancel_a_wall_whose_error_grows_with_the_move_in_two_rounds(monkeypatch):
+    """``bench/closed_loop_vm_samples.py --secant``: a machine whose residual on a path moved in by
+    d is r = e0 − g·d (the heavy wall: moving in adds material, the deflection grows; g = 0.45)
+    is cancelled after two rounds, d = e0 / g (the secant of the fixed point is exact on a linear
+    error), where accumulated residuals leave e0·(1 − g)² (d = e0·(2 − g))."""
+    from pathlib import Path
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "bench"))
+    from closed_loop_vm_samples import errors_of_path, measured_round
+    lines = [b"%", b"O0012", b"G90 G17 G21", b"T1 M6", b"S1000 M3", b"G0 X0.000 Y0.000 Z1.000", b"G1 Z0.000 F100"]
+    lines += [b"X%.3f" % (1.0 * (i + 1)) for i in range(10)] + [b"G0 Z10.000", b"M30", b"%", b""]
+    blocks, _ = parse_program(b"\n".join(lines), "t", "p")
+    passes = split_blocks(blocks, {**SPLIT, "split": {**SPLIT["split"], "merge_max_mm": 0.0}}).sort_by("pass_id")
+    z0, z1 = passes.column("z0_mm").to_numpy(), passes.column("z1_mm").to_numpy()
+    x0, x1 = passes.column("x0_mm").to_numpy(), passes.column("x1_mm").to_numpy()
+    row = np.flatnonzero((z0 == 0) & (z1 == 0) & (x1 > x0))
+    assert row.size == 10
+    row_passes = passes.take(row)
+    e0, g = 40.0, 0.45
+    params = {"correct": {"max_move_um": 450.0}}
+    on_row = lambda c: (c.column("z_mm").to_numpy() == 0) & (c.column("block_no").to_numpy() > 6)  # noqa: E731
+    depth = lambda c: -(c.column("z_new_mm").to_numpy() - c.column("z_mm").to_numpy())[on_row(c)] * 1000  # noqa: E731
+
+    def residuals(c):                       # the machine: every row vertex moved in by the same d
+        d = 0.0 if c is None else float(np.mean(depth(c)))
+        return _errors(row_passes, np.full(10, e0 - g * d), np.tile([0.0, 0.0, 1.0], (10, 1)))
+
+    # the residual on a path moved in by 30 µm is the path's own error + 30 µm … less the move
+    moved = measured_round(blocks, passes, _errors(row_passes, np.full(10, 30.0), np.tile([0.0, 0.0, 1.0], (10, 1))),
+                           None, params, True)
+    e_path = errors_of_path(_errors(row_passes, np.full(10, 12.0), np.tile([0.0, 0.0, 1.0], (10, 1))), passes, moved)
+    np.testing.assert_allclose(e_path.column("err_um").to_numpy(), 42.0, atol=1e-6)
+
+    for secant, after_two in ((True, e0 / g), (False, e0 * (2 - g))):
+        c = None
+        for _ in range(2):
+            c = measured_round(blocks, passes, residuals(c), c, params, secant)
+        np.testing.assert_allclose(depth(c), after_two, atol=1e-3)
