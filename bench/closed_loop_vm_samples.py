@@ -81,7 +81,12 @@ def errors_of_path(errors, passes, corrected):
     bn = corrected.column("block_no").to_numpy()
     col = lambda n: corrected.column(n).to_numpy()  # noqa: E731
     move = 1000.0 * np.stack([col(f"{a}_new_mm") - col(f"{a}_mm") for a in "xyz"], 1)
-    at = lambda b: np.where((b >= bn[0])[:, None], move[np.clip(np.searchsorted(bn, b), 0, bn.size - 1)], 0.0)  # noqa: E731
+    def at(b):                  # the move of the end of block b (before the first block: none)
+        i = np.clip(np.searchsorted(bn, b), 0, bn.size - 1)
+        if np.any((b >= bn[0]) & (bn[i] != b)):
+            raise SystemExit("errors_of_path: a pass end is not a block end of the corrected table "
+                             "(the run's blocks must be cut at the pass ends: correct.via_points)")
+        return np.where((b >= bn[0])[:, None], move[i], 0.0)
     pid = passes.column("pass_id").to_numpy()
     k = np.searchsorted(pid, errors.column("pass_id").to_numpy())
     m = 0.5 * (at(passes.column("block_no").to_numpy()[k] - 1) + at(passes.column("block_end").to_numpy()[k]))

@@ -2117,7 +2117,7 @@ def test_measured_secant_rounds_cancel_a_wall_whose_error_grows_with_the_move_in
         d = 0.0 if c is None else float(np.mean(depth(c)))
         return _errors(row_passes, np.full(10, e0 - g * d), np.tile([0.0, 0.0, 1.0], (10, 1)))
 
-    # the residual on a path moved in by 30 µm is the path's own error + 30 µm … less the move
+    # a row moved in by 30 µm that still leaves 12 µm: the error of that path is 42 µm
     moved = measured_round(blocks, passes, _errors(row_passes, np.full(10, 30.0), np.tile([0.0, 0.0, 1.0], (10, 1))),
                            None, params, True)
     e_path = errors_of_path(_errors(row_passes, np.full(10, 12.0), np.tile([0.0, 0.0, 1.0], (10, 1))), passes, moved)
