@@ -245,6 +245,19 @@ def second_wall_plan(vm, pts, nrm):
     return p[first], n[first], ideal[first]
 
 
+def vm_inputs(wf: dict, window, spacing_mm: float) -> list:
+    """What the machine's probes depend on besides the program (parts of :func:`_vm_key`); the
+    input files by their bytes, not their paths: a run from another checkout (a snapshot
+    elsewhere) with the same files keeps the cache."""
+    tool = {k: v for k, v in wf["tool"].items() if k != "profile"}
+    machine = {**wf["machine"], "frf": {k: v for k, v in wf["machine"]["frf"].items() if k != "table"}}
+    inputs = [tool, wf["material"], machine, _vm_split(wf), list(window), spacing_mm]
+    for f in (wf["stock"], wf["tool"].get("profile"), wf["machine"]["frf"].get("table")):
+        if f:
+            inputs.append(Path(f).read_bytes())
+    return inputs
+
+
 def vm_errors(window, programs: dict, wf: dict, spacing_mm: float = 0.1, cache: Path | None = None,
               dump: Path | None = None, predicted=None, vm_step_mm: float | None = None,
               second_walls: bool = False) -> dict:
@@ -260,14 +273,7 @@ def vm_errors(window, programs: dict, wf: dict, spacing_mm: float = 0.1, cache: 
     import pyarrow.parquet as pq
     from stages.virtual_machine import grid_plan
     x0, x1, y0, y1 = window
-    # the input files by their bytes, not their paths: a run from another checkout (a snapshot
-    # elsewhere) with the same files keeps the cache
-    tool = {k: v for k, v in wf["tool"].items() if k != "profile"}
-    machine = {**wf["machine"], "frf": {k: v for k, v in wf["machine"]["frf"].items() if k != "table"}}
-    inputs = [tool, wf["material"], machine, _vm_split(wf), list(window), spacing_mm]
-    for f in (wf["stock"], wf["tool"].get("profile"), wf["machine"]["frf"].get("table")):
-        if f:
-            inputs.append(Path(f).read_bytes())
+    inputs = vm_inputs(wf, window, spacing_mm)
 
     def reference():
         vm = _machine(programs["original"], True, wf, window)

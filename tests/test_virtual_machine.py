@@ -294,3 +294,33 @@ def test_the_engagement_is_the_same_with_and_without_testing_the_nearest_sub_seg
     brute = VirtualMachine(passes, tool(), MAT, RIGID, box, deflection_step_mm=1.0)._engaged
     assert np.unpackbits(brute).sum() > 1000            # the raster engages something
     np.testing.assert_array_equal(fast, brute)
+
+
+@pytest.mark.parametrize("runout_um", [0.0, 5.0])
+def test_the_spindle_s_start_angle_repeats_after_a_tooth_period_without_runout_and_a_revolution_with(runout_um):
+    """The tooth passages follow the program's clock (θ = 360° t / T), so the same program started
+    with the spindle at another angle (every pass's times shifted alike) leaves another surface
+    where the deflection changes over the tooth cycle (``bench/spindle_phase_samples.py``). With
+    alike flutes the cut repeats after one tooth period T / Z; with runout only after a revolution."""
+    soft = {"frf": {a: [{"fn_hz": 900.0, "zeta": 0.03, "k_n_per_um": 1.0}] for a in "xy"}}
+    prog = _passes([((-10.0, 3.0, -1.0), (-2.0, 3.0, -1.0)), ((-10.0, 0.0, -1.0), (10.0, 0.0, -1.0))])
+    vm = VirtualMachine(prog, {**tool(), "runout_um": runout_um}, MAT, soft, {"box": [-30, -30, -20, 30, 30, 0]},
+                        deflection_step_mm=0.5)
+    x = np.arange(-9.9, 9.95, 0.037)                 # not a multiple of the feed per tooth (0.05 mm)
+    pts = np.stack([x, np.full_like(x, -2.0), np.full_like(x, 4.0 - np.sqrt(21.0))], 1)
+    nrm = np.tile(np.array([0.0, 2.0, np.sqrt(21.0)]) / 5.0, (len(x), 1))
+    t0, t1 = vm.path.t0.copy(), vm.path.t1.copy()
+    rev = 60.0 / 10000.0
+
+    def at(shift_s):
+        vm.path.t0, vm.path.t1 = t0 + shift_s, t1 + shift_s
+        return vm.probe(pts, nrm)
+
+    e0 = at(0.0)
+    tooth, half, whole = at(rev / 2), at(rev / 4), at(rev)
+    np.testing.assert_allclose(whole, e0, atol=1e-6)
+    assert np.abs(half - e0).max() > 1.0
+    if runout_um == 0.0:
+        np.testing.assert_allclose(tooth, e0, atol=1e-3)    # the periodic deflection's last sampled revolution
+    else:
+        assert np.abs(tooth - e0).max() > 1.0
