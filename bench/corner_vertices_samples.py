@@ -10,7 +10,13 @@ at x 28.7, the corner at x 28.2, the climb's first via point 0.5 mm up; blocks 4
 sample's blocks with via points) in four ways, machines the programs whole and reports the part, the
 pass and the corner's box.
 
-    python3 bench/corner_vertices_samples.py RUN_DIR [--rounds 4] [--vm-step-mm 0.5]
+With ``--blend`` the variants are a rule instead: at every path corner with a via point on both
+sides (``correct.corner_via_mm``), the via point before, the corner and the via point after all take
+the mean of the two via points' moves (the row's and the climb's), at all such corners, at those
+whose two via points' moves differ by more than 100 µm, and at the heavy row's two corners
+(blocks 4971 and 4983) only.
+
+    python3 bench/corner_vertices_samples.py RUN_DIR [--rounds 4] [--vm-step-mm 0.5] [--blend]
 """
 from __future__ import annotations
 
@@ -31,6 +37,43 @@ CORNER_BOX = (22.0, 34.0, 46.0, 54.0)     # x0, x1, y0, y1 (mm)
 Y0 = 48.0                                  # the row's y in the original program
 
 
+NEW = ["x_new_mm", "y_new_mm", "z_new_mm"]
+
+
+def blend_variants(blocks, corrected) -> dict:
+    """name → (b, 3) new coordinates: the corners (a turn over 30° between G1 lines, with a via point
+    on both sides) blended, each corner's three vertices at the mean of its via points' moves."""
+    from stages.split import corner_ends
+    blocks = blocks.to_pandas()
+    blocks = blocks[blocks.motion <= 3]                     # the corrected table's rows
+    if not np.array_equal(blocks.block_no.to_numpy(), corrected.block_no.to_numpy()):
+        raise SystemExit("the corrected table's rows are not the program's motion blocks")
+    g = lambda c: blocks[c].to_numpy()  # noqa: E731
+    p0 = np.stack([g("x0_mm"), g("y0_mm"), g("z0_mm")], 1)
+    p1 = np.stack([g("x1_mm"), g("y1_mm"), g("z1_mm")], 1)
+    via = g("via_only")
+    _, at_end = corner_ends(p0, p1, g("motion") == 1)
+    i = np.flatnonzero(at_end[1:-1]) + 1
+    tri = np.stack([i - 1, i, i + 1], 1)[via[i - 1] & via[i + 1]]
+    orig = corrected[["x_mm", "y_mm", "z_mm"]].to_numpy()
+    new = corrected[NEW].to_numpy()
+    move = new - orig
+    apart = np.linalg.norm(move[tri[:, 0]] - move[tri[:, 2]], axis=1) > 0.1
+    heavy = np.isin(g("block_no")[tri[:, 1]], HEAVY_ROW_CORNERS)
+
+    def blend(sel):
+        out = new.copy()
+        t = tri[sel]
+        out[t] = orig[t] + ((move[t[:, 0]] + move[t[:, 2]]) / 2)[:, None, :]
+        return out
+    print(f"{len(tri)} corners with via points on both sides; {int(apart.sum())} whose via points' moves "
+          f"differ by more than 100 um (blocks {g('block_no')[tri[apart, 1]].tolist()})")
+    return {"blend all": blend(slice(None)), "blend over 100 um": blend(apart), "blend heavy row": blend(heavy)}
+
+
+HEAVY_ROW_CORNERS = (4971, 4983)          # the heavy row's corners at x 73.4 and x 28.2
+
+
 def main():
     import pandas as pd
     import pyarrow as pa
@@ -46,6 +89,7 @@ def main():
     ap.add_argument("run", type=Path, help="a run directory of bench/closed_loop_pipeline_samples.py --whole")
     ap.add_argument("--rounds", type=int, default=4)
     ap.add_argument("--vm-step-mm", type=float, default=0.5)
+    ap.add_argument("--blend", action="store_true", help="the corner-blend rule's variants instead of the hand ones")
     args = ap.parse_args()
     run = args.run.resolve()
     wf = yaml.safe_load((run / "wf1.yaml").read_text())
@@ -70,22 +114,26 @@ def main():
     rows = [int(np.flatnonzero(d.block_no.to_numpy() == b)[0]) for b in CORNER_BLOCKS]
     y_row = float(d.y_new_mm.to_numpy()[rows[1]])
     half = Y0 + (y_row - Y0) / 2
-    variants = {"the climb's via point follows": (None, None, y_row),
-                "the last piece and the corner not moved": (Y0, Y0, None),
-                "only the corner not moved": (None, Y0, None),
-                "all three at half": (half, half, half)}
     programs = {"original": src, f"round {args.rounds}": last}
-    for name, ys in variants.items():
-        v = d.copy()
-        for r, y in zip(rows, ys):
-            if y is not None:
-                v.loc[r, "y_new_mm"] = y
+    if args.blend:
+        variants = {name: d.assign(**dict(zip(NEW, xyz.T))) for name, xyz in blend_variants(blocks, d).items()}
+    else:
+        variants = {}
+        for name, ys in {"the climb's via point follows": (None, None, y_row),
+                         "the last piece and the corner not moved": (Y0, Y0, None),
+                         "only the corner not moved": (None, Y0, None),
+                         "all three at half": (half, half, half)}.items():
+            v = variants[name] = d.copy()
+            for r, y in zip(rows, ys):
+                if y is not None:
+                    v.loc[r, "y_new_mm"] = y
+    for name, v in variants.items():
         t = pa.Table.from_pandas(v, preserve_index=False)
         text = write_program(src, blocks, t)
         if not reverse_check(text, blocks, t)["ok"]:
             raise SystemExit(f"{name}: the written program does not parse back")
         programs[name] = text
-    dump = run / "points_corner_vertices.parquet"
+    dump = run / ("points_corner_blend.parquet" if args.blend else "points_corner_vertices.parquet")
     bench.vm_errors((-1e9, 1e9, -1e9, 1e9), programs, wf, cache=run.parent / "vm_cache", dump=dump,
                     vm_step_mm=args.vm_step_mm)
     p = pd.read_parquet(dump)
