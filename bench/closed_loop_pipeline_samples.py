@@ -113,10 +113,10 @@ def workflow(root: Path, max_iter: int, prune_deg=None, max_move_um=None, correc
     wf["correct"] = {**wf.get("correct", {}), "max_iter": max_iter}
     if max_move_um is not None:
         wf["correct"]["max_move_um"] = float(max_move_um)
-    for kv in correct_opts:                      # e.g. deflection_vector=true, relax=0.5
+    for kv in correct_opts:                      # e.g. relax=0.5
         k, v = kv.split("=", 1)
         wf["correct"][k] = yaml.safe_load(v)
-    for kv in other_opts:                        # e.g. split.end_piece_mm=0.5
+    for kv in other_opts:                        # e.g. split.max_pass_mm=0.5
         k, v = kv.split("=", 1)
         section, _, key = k.partition(".")
         if not key:
@@ -132,9 +132,8 @@ def workflow(root: Path, max_iter: int, prune_deg=None, max_move_um=None, correc
 Q_BANDS = ((0.0, 30.0, "q<30"), (30.0, 60.0, "q30-60"), (60.0, 91.0, "q>=60"))
 
 
-# the machine cuts every program as passes of the same length, whatever piece options the
-# predicting workflow has (split.end_piece_mm, split.corner_piece_mm): the machine's physics (one
-# deflection per pass) must not change with the pipeline's options
+# the machine cuts every program as passes of the same length, whatever the predicting workflow's
+# split options: the machine's physics (one deflection per pass) must not change with them
 VM_SPLIT = ("chord_tol_mm", "max_pass_mm", "merge_max_mm")
 
 
@@ -379,9 +378,9 @@ def main():
                     help="clip of the vertex moves, µm; default: the sample workflow's correct.max_move_um")
     ap.add_argument("--whole", action="store_true", help="the whole program, probed over the whole part")
     ap.add_argument("--correct", action="append", default=[], metavar="KEY=VALUE",
-                    help="a workflow `correct` option for both runs (repeatable), e.g. deflection_vector=true")
+                    help="a workflow `correct` option for both runs (repeatable), e.g. relax=0.5")
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE", dest="other",
-                    help="any other workflow value for both runs (repeatable), e.g. split.end_piece_mm=0.5")
+                    help="any other workflow value for both runs (repeatable), e.g. split.max_pass_mm=0.5")
     ap.add_argument("--workers", type=int, default=1, help="Dask workers of the pipeline runs")
     ap.add_argument("--spacing", type=float, default=0.1, help="probe spacing along the passes, mm")
     ap.add_argument("--vm-step-mm", type=float, default=None,

@@ -61,7 +61,7 @@ def workflow(root: Path, max_iter: int, correct_opts=(), max_pass_mm: float = 40
           "render": {"backend": "auto", "px_per_mm": 20}, "prune": {"min_contact_deg": 0},
           "split": {"max_pass_mm": max_pass_mm}, "output": "out",
           "correct": {"max_move_um": 100, "tol_um": 0.05, "max_iter": max_iter}}
-    for kv in correct_opts:                      # e.g. accelerate=false
+    for kv in correct_opts:                      # e.g. relax=0.5
         k, _, v = kv.partition("=")
         wf["correct"][k] = yaml.safe_load(v)
     p = root / f"wf{max_iter}.yaml"
@@ -101,7 +101,7 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--out", default="/tmp/closed_loop_vm")
     ap.add_argument("--correct", action="append", default=[], metavar="KEY=VALUE",
-                    help="a workflow `correct` option for both runs (repeatable), e.g. accelerate=false")
+                    help="a workflow `correct` option for both runs (repeatable), e.g. relax=0.5")
     ap.add_argument("--max-pass-mm", type=float, default=40.0,
                     help="the pipeline's split.max_pass_mm (the machine cuts the levels as 40 mm passes)")
     ap.add_argument("--vm-step-mm", type=float, default=None,

@@ -110,15 +110,6 @@ class Split(_Strict):
 
     chord_tol_mm: float = Field(0.001, gt=0, le=1.0)  # arcs → chords, and merges, within this deviation
     max_pass_mm: float = Field(5.0, gt=0)             # longer cutting moves (> 0.5 % over) are split
-    # a split move's first and last piece this long (0: equal pieces only); with correct.via_points
-    # the vertex a long line shares with a pocket corner gets a via point this far along it
-    end_piece_mm: float = Field(0.0, ge=0)
-    # a G1 line meeting another at a path corner (a turn over 30°) gets a piece this long at that
-    # end (0: none): the passes beside a corner are predicted, and with correct.via_points
-    # corrected, apart from the line's body (stages.split.corner_ends). Off: on the whole sample
-    # program with via points 60.8 / 46.6 % after one / three rounds against 39.8 / 37.2 % (the
-    # buried bottom pieces of the wall climbs are predicted far off, README samples row)
-    corner_piece_mm: float = Field(0.0, ge=0)
     merge_max_mm: float = Field(0.5, ge=0)            # short moves merged into passes up to this long
 
 
@@ -132,39 +123,9 @@ class Correct(_Strict):
     # prediction asks for (1 = the plain fixed point P = P0 − e(P)·n); a vertex whose change does
     # not shrink from round to round has its fraction halved (see stages.correct.correct_once)
     relax: float = Field(1.0, gt=0, le=1)
-    # rounds 2…: the step fraction from the secant of the last two rounds (1/(1 − g), g the error's
-    # gain on the move, up to 4 × relax; stages.correct._secant_fraction): one round to the fixed
-    # point of an error linear in the move, where the plain fixed point leaves g per round; only
-    # where this round's step lies along the last one (within 25°). Off by default: on the virtual
-    # machine it did worse than plain rounds (cylinder 12.9 % against 11.7 %; the whole sample
-    # program after three rounds 57.2 %, with 9a74cd1's generating point, against 55.0 % plain at
-    # dbcce77; with corner via points, before the 25° rule, 37.6 % against 34.5 %)
-    accelerate: bool = False
     # limit vertex moves so that the tool does not cut into the surface other passes generate
     # (a heavy corner pass moved sideways into the wall beside it; stages.correct.gouge_limit)
     gouge_limit: bool = True
-    # the gouge limit checks other passes' contact lines (the generating point carried along the
-    # pass, stages.correct.contact_lines), not only their generating points. Off by default: on the
-    # sample it guards the pocket wall's foot (window 42.9 → 20.3 %) but the whole program got
-    # worse (37.2 → 41.0 % after three rounds, with via points)
-    gouge_lines: bool = False
-    # the least-squares refinement on a straight path solved with the normals projected across the
-    # path, not its solved move projected afterwards (which slid a wall vertex 128 µm sideways in
-    # a window). Off by default: the whole sample program did worse after three rounds (41.9
-    # against 37.2 %, the convex row y 61.2 folded again)
-    refine_across_path: bool = False
-    # a vertex whose passes' normals are > 30° apart (a pocket corner, a wall's foot) moves only
-    # out of the fan of surface its tool generates there (stages.correct.corner_limit). Off: the
-    # whole sample program did worse (57.3 against 37.2 % after three rounds, with via points and
-    # 0.5 mm end pieces; 65.7 against 32.7 % with corner via points, guard_fans, accelerate and a
-    # 450 µm clip: the climb's via point beside a held foot corner carries the wall alone and overshoots)
-    hold_corners: bool = False
-    # the gouge limit guards the fans of surface the tool finishes standing at corner vertices
-    # (stages.correct.corner_fans: a wall's foot rounded by the ball) against the vertices beside
-    # them (a slope pass ending 0.1 mm before the foot, moved 0.2 mm towards it), without holding
-    # the corners themselves (their own moves cut their fans). Off: the whole sample program with
-    # corner via points 38.4 / 34.5 % after one / three rounds against 39.1 / 34.5 %
-    guard_fans: bool = False
     # normals of a vertex's two passes closer than this are one normal for the least-squares
     # refinement of its move (None: stages.correct.NORMAL_TOL_DEG, 2°). Realising two errors Δe apart
     # along normals θ apart takes Δe / sin θ sideways: on the sample's corner climb, its passes' normals
@@ -172,11 +133,6 @@ class Correct(_Strict):
     normal_tol_deg: Optional[float] = Field(None, gt=0, lt=30)
     ln_normals: bool = False                 # also write Heidenhain-style LN blocks with normals
     comp_table: bool = False                 # also write a contact-angle compensation table
-    # undo the tool deflection as a vector (−δ; its tangential part shifts cusps), the rest of the
-    # error along the normals (False: everything along the normals, seed 000 para 0084). Off: on
-    # the sample's boss foot its rounds do not contract, and on the whole sample program it cut a
-    # convex row and the pocket's corners by 0.7–0.8 mm (stages/correct.py)
-    deflection_vector: bool = False
     # cut long straight cuts at the split stage's pass ends, and plain arcs at their chords, and
     # write the moved ends as inserted G1 lines (stages.nc_writer.via_blocks): the passes of one
     # long cut or arc can be corrected apart. Off by default: the corrected program then differs
@@ -190,21 +146,6 @@ class Correct(_Strict):
     # doubled its deflection on the virtual machine (−72 → −166 µm). The whole sample program with
     # via points: 39.1 / 34.5 % after one / three rounds against 39.8 / 37.7 % without
     corner_via_mm: float = Field(0.5, ge=0)
-    # realise the errors of the passes' second contacts too (errors.err2_um: a ball in a vertical
-    # corner finishes both walls; stages.correct.contact_moves), and guard them in the gouge limit.
-    # Off by default: on the sample's pocket corner (window x 70-80, y 44-53, 0.5 mm passes) the
-    # bench's probes (one per ball position: the x wall) 47.2 / 81.6 % after one / three rounds
-    # against 44.8 / 83.3 % without; the surfaces they miss (the corner's arc and the y wall,
-    # --second-walls: 3,578 points, 80.6 µm before) 123.5 / 119.6 % against 129.2 / 114.0 %
-    # (docs/closed_loop_samples.md)
-    second_contacts: bool = False
-    # rounds 2…: a pass whose predicted normal turned further than this (degrees) from its round-1
-    # normal keeps its round-1 error (None: off; stages.correct.on_first_surface): the moved ball
-    # touches the surface elsewhere or another surface (the sample's convex row y 61.2, the pocket's
-    # corners), and that error is not the one the pass was corrected for. Off by default: measured
-    # once, with accelerate, on the whole sample program: 10° 47.1 / 44.6 % after two / three rounds
-    # against 46.5 / 49.3 % (30°: 48.2 / 48.1 %), the cylinder unchanged
-    keep_surface_deg: Optional[float] = Field(None, gt=0, le=180)
 
 
 class Measurements(_Strict):

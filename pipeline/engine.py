@@ -29,11 +29,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional
 
-import pyarrow as pa
 
 import schemas
 from pipeline.cache import Cache, digest, file_sha256
-from pipeline.config import Workflow, WorkflowError, load_workflow, program_paths, resolve
+from pipeline.config import WorkflowError, load_workflow, program_paths, resolve
 from stages import InputError
 
 # Stage modules in execution order. A stage runs once per program partition (or per shard of it).

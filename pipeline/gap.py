@@ -22,7 +22,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 import schemas
-from pipeline.config import Measurements, WorkflowError, load_workflow, resolve
+from pipeline.config import Measurements, load_workflow, resolve
 from stages import InputError
 
 
@@ -653,8 +653,7 @@ def _runout_eff(true: dict) -> float:
 def blind_check(workflow: str, cases: int, seed: int, out: Optional[str] = None, noise=(0.3, 1.0),
                 pairs: int = 0, progress=None, kinds: Optional[list] = None) -> dict:
     """Random effect (or none) per case, simulated on the virtual machine, diagnosed blind."""
-    from stages.gap import associate
-    from stages.virtual_machine import EFFECTS, VirtualMachine
+    from stages.virtual_machine import VirtualMachine
     wf, base = load_workflow(workflow)
     spec = _spec(wf, base)
     tabs, outdir, run = run_tables(workflow, "errors")

@@ -23,13 +23,12 @@ SCHEMA = pa.schema([
     pa.field('change_um', pa.float64()),      # |move| of the last round (iteration stops below tol_um)
     pa.field('clipped', pa.bool_()),          # the move was limited to correct.max_move_um
     pa.field('gouge_limit_um', pa.float64()), # taken off the move so the tool stays off the surface
-                                              # other passes generate (stages.correct.gouge_limit;
-                                              # with correct.hold_corners also out of a corner's fan)
+                                              # other passes generate (stages.correct.gouge_limit;)
     pa.field('iteration', pa.int32()),        # rounds of predict → correct run so far
     pa.field('relax', pa.float64()),          # fraction of its step the vertex took in the last round
     pa.field('step_x_um', pa.float64()),      # the step the last round's errors asked for (before the
     pa.field('step_y_um', pa.float64()),      # fraction, the clip and arc refits): the next round's
-    pa.field('step_z_um', pa.float64()),      # secant (correct.accelerate) compares its own with it
+    pa.field('step_z_um', pa.float64()),
     pa.field('nx', pa.float64()),             # vertex normal (unit sum of the predicted passes' normals),
     pa.field('ny', pa.float64()),             # NaN where no predicted pass meets the vertex
     pa.field('nz', pa.float64()),

@@ -14,33 +14,6 @@ direction d the least-squares magnitude is
 Two passes with the same normal and error give m = −e·n exactly; perpendicular normals give
 m = −(e_i n_i + e_j n_j), which realises both errors exactly.
 
-- Optionally (``correct.deflection_vector``, off by default: see the figures below) the
-  deflection part of the error is undone as a vector (the errors table's ``defl_x_um`` and
-  ``defl_y_um``, the tool's deflection at the passage that leaves the generating point): a vertex
-  moves by −δ̄ (the mean deflection of its predicted passes) plus the move above for what −δ̄
-  leaves of each pass's error along its normal (err − δ̄·n: shape, runout, stand-off, the
-  difference of the two passes' deflections), so both errors are realised along the normals
-  wherever they were before. The tangential part of δ is what moves along the normals cannot
-  give: it shifts the cusps between rows, and where a short pass on a slope meets a floor pass
-  (the sample's boss foot: −7 µm at q 10° from a 45 µm sideways deflection, nothing on the
-  floor) the normals-only move is capped and lifts the floor by 2–3 µm, while −δ realises both.
-  Errors without these columns (measured residuals) are corrected along the normals alone.
-  Measured (``bench/closed_loop_vm.py``, ``bench/closed_loop_pipeline_samples.py``; error RMS
-  after 3 rounds in % of before, vectors against normals only): cylinder 10.9 against 11.7 %,
-  sample pocket wall 20.3 against 17.5 %, boss foot 70.6 against 48.8 %. At the boss foot the
-  deflection of the heavy cuts changes with the sideways moves (40 µm, alternating in sign from
-  vertex to vertex; 71 clipped vertices against 19): the rounds do not contract there, and
-  halving the rounds' steps (``correct.relax: 0.5``) does not help (wall 19.9 %, boss foot
-  94.7 %). On the whole sample program (with via points, guarded fans, accelerated rounds, a
-  450 µm clip) 48.6 / 70.6 % after one / three rounds against 39.7 / 32.7 %: −δ̄ also moves a
-  vertex along the surface, and on a convex row (y 61.27) and in the pocket's corners that cut
-  0.7–0.8 mm within three rounds. Hence off.
-- Second contacts (``correct.second_contacts``, off by default; ``errors``' ``err2_um`` along
-  ``nx2``…: a ball in a vertical corner finishes both walls): a vertex beside such a pass realises
-  every contact of its passes at once, by the
-  damped least squares of :func:`contact_moves` (up to four errors and normals), so each piece of a
-  corner climb moves into both walls alike whichever wall its first contact is on. The gouge limit
-  counts the second contacts as surfaces (of their pass: a vertex does not guard against its own).
 - Vertices inside a pass that merges several short blocks get the error of that pass alone.
 - A pass without an error row (pruned, non-cutting, rapid) contributes nothing: a vertex between it
   and a predicted pass follows the predicted pass; a vertex with no predicted pass on either side
@@ -49,22 +22,9 @@ m = −(e_i n_i + e_j n_j), which realises both errors exactly.
   flagged in the ``clipped`` column.
 - Gouge limit (``correct.gouge_limit``, on by default; needs the ``generating`` table and the
   tool): a vertex is not moved so far that the tool cuts past the generating point of another
-  surface it passes beside (with ``correct.gouge_lines``, past that pass's contact line: its
-  generating point carried along the pass, :func:`contact_lines`; :func:`gouge_limit`);
-  ``gouge_limit_um`` lists what was taken off. On
-  the sample mould's pocket corner (x 78, y 36–39) four 0.2 mm passes descending into the corner
-  (predicted −217…−437 µm, a buried ball deflected ~1 mm) share vertices with floor passes; the
-  least-squares move that realises both is 500–670 µm along +x, and with the tool's side 0.07–0.13
-  mm from the wall, the 300 µm it was clipped to cut the wall 40–110 µm below what the wall's own
-  passes left (on the virtual machine: wall passes +41 → −43 µm). Checked against the wall
-  passes' generating points alone (2 mm up their 4 mm climbs) the limit missed the wall's foot
-  (+38 → −50 µm after one round, −342 µm after three); along their contact lines the sample's
-  window x 74–82, y 36–40 (`bench/closed_loop_pipeline_samples.py`, with via points) went from
-  45.5 % to 27.8 % after one round and from 42.9 % to 20.3 % after three, max 333 → 29 µm. Off
-  by default (``correct.gouge_lines``): on the whole sample program the wall's foot improved
-  (67.9 → 32.1 µm RMS after three rounds) but the rest got worse, 37.2 → 41.0 % after three
-  rounds (the slope beside that foot, whose overcut the blocked move no longer relieves, and the
-  convex row y 61.2, where the lines of neighbouring passes on the profile block moves).
+  surface it passes beside (:func:`gouge_limit`); ``gouge_limit_um`` lists what was taken off: a
+  heavy pass in a pocket corner asks to move sideways into the wall beside it, which the wall's
+  own passes leave at the design.
 - Arcs (G2/G3): the chord points of the arc are moved like vertices, then the arc is refitted by
   least squares: the centre lies on the perpendicular bisector of the moved end points (so the
   program stays consistent) at the position that best fits the moved chord points (algebraic
@@ -84,10 +44,7 @@ change against the previous table's coordinates. Two kinds of errors drive it:
 - predictions, which are relative to the path they were made for (the surface of path P is
   P + e(P)·n): the command that leaves the original surface is the fixed point P = P0 − e(P)·n, so
   the move for the errors predicted on the corrected path is applied to the ORIGINAL blocks
-  (:func:`run` with ``round_passes``; the engine's rounds in ``pipeline/iterate.py``). Where the
-  error depends on the move (a heavy cut: moving into the wall adds material and deflection) the
-  plain fixed point closes only 1 − g of the gap a round; ``correct.accelerate`` takes the secant
-  step of the last two rounds instead (:func:`_secant_fraction`).
+  (:func:`run` with ``round_passes``; the engine repeats the chain, see the stage graph).
 
 :func:`apply_corrected` turns a ``corrected`` table back into ``blocks`` (new coordinates and arc
 centres) for the next prediction.
@@ -106,25 +63,10 @@ OUTPUTS = ("corrected",)
 # only the clip limit and the relaxation of rounds 2… change the table; tol_um and max_iter steer
 # the engine's rounds and the LN / compensation-table options the writer, so changing them re-uses
 # every cached round
-PARAMS = ("correct.max_move_um", "correct.relax", "correct.accelerate", "correct.deflection_vector",
-          "correct.gouge_limit", "correct.gouge_lines", "correct.refine_across_path",
-          "correct.hold_corners", "correct.guard_fans", "correct.normal_tol_deg", "correct.second_contacts",
-          "correct.keep_surface_deg", "tool")
-
-
-def used_params(params: dict) -> dict:
-    """``correct.keep_surface_deg`` enters the cache key only when set: runs without it keep their cached rounds."""
-    cor = params.get("correct")
-    if isinstance(cor, dict) and cor.get("keep_surface_deg") is None:
-        params = {**params, "correct": {k: v for k, v in cor.items() if k != "keep_surface_deg"}}
-    return params
-
+PARAMS = ("correct.max_move_um", "correct.relax", "correct.gouge_limit", "correct.normal_tol_deg", "tool")
 
 DEFAULTS = {"max_move_um": 50.0, "tol_um": 0.1, "max_iter": 5, "relax": 1.0, "ln_normals": False,
-            "comp_table": False, "deflection_vector": False, "accelerate": False,
-            "gouge_limit": True, "gouge_lines": False, "refine_across_path": False,
-            "hold_corners": False, "guard_fans": False, "normal_tol_deg": None, "second_contacts": False,
-            "keep_surface_deg": None}
+            "comp_table": False, "gouge_limit": True, "normal_tol_deg": None}
 _PLANE_AXES = {17: (0, 1, 2), 18: (2, 0, 1), 19: (1, 2, 0)}  # as stages.parse: (first, second, normal)
 _EPS_UM = 1e-9
 # normals of the two passes at a vertex closer than this are one normal for the least-squares
@@ -156,22 +98,6 @@ PATH_TURN_DEG = 10.0
 LINE_TURN_DEG = 3.0
 # smallest step fraction of a vertex whose rounds do not contract (see correct_once)
 MIN_RELAX = 1.0 / 16
-# rounds 2…: the secant step (``correct.accelerate``) takes at most this many times the plain step
-# (an error gain g = 0.75 on the move), and only after a move of at least ACCEL_MIN_UM (a few times
-# the pass-to-pass jitter of the prediction, which would otherwise set the slope)
-MAX_ACCEL = 4.0
-ACCEL_MIN_UM = 5.0
-# ... and only where this round's step lies along the last one (|cos| ≥ this, 25°): the secant is
-# a model of the residual along the last move; a step that turned away from it (a ball whose
-# generating point moved from a slope onto the wall beside it as the path moved) is not on that line
-ACCEL_MIN_COS = 0.9
-# a vertex whose two passes' normals are further apart than this is a corner of the surface (a
-# pocket's corner between two walls, a wall's foot): the tool standing there generates the fan of
-# normals between them, which no pass predicts, and with correct.hold_corners it only moves out of
-# that fan (corner_limit)
-CORNER_DEG = 30.0
-# largest angle between two normals of a corner's fan guarded by the gouge limit (corner_fans)
-CORNER_FAN_STEP_DEG = 10.0
 # gouge limit (see gouge_limit): generating points of other passes whose normal lies within this
 # angle of a vertex's own pass normals are the same surface (the neighbouring rows of a floor or a
 # slope, corrected by their own moves) and do not limit the vertex
@@ -184,9 +110,6 @@ GOUGE_INSIDE_MM = 0.02
 # on a floor, and every point within _FLOOR_DEG + _FLAT_DEG ≤ SAME_SURFACE_DEG of +z is its surface
 _FLOOR_DEG = 10.0
 _FLAT_DEG = 20.0
-# largest distance between the points that stand for a pass's contact line (see contact_lines):
-# between two of them a ball of radius R reaches s²/8R deeper unseen, 1 µm for the sample's Ø10
-CONTACT_SPACING_MM = 0.2
 # vertices checked at once (candidate pairs: ~10 per vertex on the sample mould)
 _GOUGE_CHUNK = 8192
 _PLANE_AXES_LUT = np.zeros((20, 3), np.int64)
@@ -204,7 +127,7 @@ def _xyz(table: pa.Table, names) -> np.ndarray:
     return np.stack([_col(table, c) for c in names], axis=1)
 
 
-def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True, along_path=None, across_path=False,
+def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True, along_path=None,
                  normal_tol_deg=NORMAL_TOL_DEG):
     """Move of vertices shared by passes a and b (para 0084, refined by least squares), vectorised.
 
@@ -226,10 +149,7 @@ def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True, along_path=N
     :data:`REFINE_MAX_RATIO` times the larger error (a vertex is not moved far along the direction
     both passes barely see). Where the path runs on nearly straight through the vertex
     (``along_path``: its unit direction there, zero where it turns by :data:`PATH_TURN_DEG` or
-    more), the refinement keeps out of that direction: with ``across_path`` it is solved across the
-    path, with the normals projected onto the plane normal to it (so normals that differ mostly
-    along the path are one normal there, and the filter sees what is left); without, the solved
-    move's part along the path is taken off afterwards. Normals that differ only along the path
+    more), the solved move's part along the path is taken off. Normals that differ only along the path
     are a profile's own curvature, and realising their different errors by sliding the vertex
     along its passes changes their lengths, not their surfaces (see :data:`PATH_TURN_DEG`).
 
@@ -242,8 +162,6 @@ def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True, along_path=N
         per vertex with an array)
     along_path : (v, 3) float or None, unit path direction the refinement must not move along
         (zero rows: no restriction)
-    across_path : bool, solve the refinement with the normals projected across ``along_path``
-        (``correct.refine_across_path``) instead of projecting the solved move
     normal_tol_deg : float, normals closer than this are one normal for the refinement
         (default :data:`NORMAL_TOL_DEG`; ``correct.normal_tol_deg``)
 
@@ -277,13 +195,6 @@ def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True, along_path=N
     na, nb = n_a * wa[:, None], n_b * wb[:, None]
     r = np.stack([-wa * err_a - np.einsum("ij,ij->i", m, na),
                   -wb * err_b - np.einsum("ij,ij->i", m, nb)], 1)
-    if along_path is not None and across_path:
-        # solved across the path: a move m ⊥ t changes e_k by m·n_k', n_k' = n_k − (n_k·t)t, so the
-        # modes and their filter are those of the projected normals (projecting the solved move
-        # afterwards kept what it asked along t's complement: on the pocket's x wall, normals
-        # 1.5° apart mostly along the path and 0.1° across it slid a vertex ~120 µm along the wall)
-        na = na - np.einsum("ij,ij->i", na, along_path)[:, None] * along_path
-        nb = nb - np.einsum("ij,ij->i", nb, along_path)[:, None] * along_path
     g = np.empty((m.shape[0], 2, 2))
     g[:, 0, 0] = np.einsum("ij,ij->i", na, na)
     g[:, 1, 1] = np.einsum("ij,ij->i", nb, nb)
@@ -294,7 +205,7 @@ def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True, along_path=N
     coef = np.einsum("vki,vk->vi", vec, r) * gain                           # per mode
     ab = np.einsum("vki,vi->vk", vec, coef)                                 # (α, β)
     extra = ab[:, :1] * na + ab[:, 1:] * nb
-    if along_path is not None and not across_path:
+    if along_path is not None:
         extra -= np.einsum("ij,ij->i", extra, along_path)[:, None] * along_path
     cap = REFINE_MAX_RATIO * np.maximum(np.abs(wa * err_a), np.abs(wb * err_b))
     size = np.linalg.norm(extra, axis=1)
@@ -302,133 +213,7 @@ def vertex_moves(err_a, n_a, has_a, err_b, n_b, has_b, refine=True, along_path=N
     return m + extra
 
 
-def contact_moves(err, normals, has, along_path=None, normal_tol_deg=NORMAL_TOL_DEG):
-    """Vertex moves that realise every contact's error at once (damped least squares), vectorised.
-
-    Where a pass touches the design surface twice (``errors``' second contact: a ball in a vertical
-    corner finishes both walls, one on a floor beside a wall its foot) a vertex carries up to four
-    (error, normal) pairs, two per pass. The move is the least-squares solution of m·n_k = −e_k
-    over them, with the filter of :func:`vertex_moves`: m = Nᵀ F(N Nᵀ)(−e), a mode of normals closer
-    than ``normal_tol_deg`` taken as one (the mean of their errors). Two passes with the same two
-    contacts at right angles (a corner climb's pieces) give m = −(e₁n₁ + e₂n₂) exactly; the same
-    wall seen by both passes is realised at the mean of their errors. Limited to
-    :data:`REFINE_MAX_RATIO` times the largest error; where the path runs straight through
-    (``along_path`` non-zero) the part along it is taken off (it changes lengths, not surfaces).
-
-    Parameters
-    ----------
-    err : (v, K) float, µm (positive = material left)
-    normals : (v, K, 3) float, unit surface normals out of the material
-    has : (v, K) bool, which pairs count
-    along_path : (v, 3) float or None
-    normal_tol_deg : float
-
-    Returns
-    -------
-    (v, 3) float, moves in µm.
-    """
-    has = np.asarray(has, bool)
-    e = np.where(has, np.nan_to_num(np.asarray(err, float)), 0.0)
-    N = np.nan_to_num(np.asarray(normals, float)) * has[..., None]
-    G = np.einsum("vkd,vld->vkl", N, N)
-    mu, vec = np.linalg.eigh(G)
-    mu_tol = 1.0 - np.cos(np.radians(normal_tol_deg))
-    gain = np.where(mu > 1e-12, mu / (mu ** 2 + mu_tol ** 2), 0.0)
-    coef = np.einsum("vki,vk->vi", vec, -e) * gain
-    m = np.einsum("vk,vkd->vd", np.einsum("vki,vi->vk", vec, coef), N)
-    if along_path is not None:
-        m -= np.einsum("ij,ij->i", m, along_path)[:, None] * along_path
-    cap = REFINE_MAX_RATIO * np.max(np.abs(e), axis=1)
-    size = np.linalg.norm(m, axis=1)
-    return m * np.minimum(1.0, cap / np.maximum(size, 1e-30))[:, None]
-
-
-def corner_limit(total_um, own_normals):
-    """Keep the moves of corner vertices out of the fan of surface their tool generates.
-
-    Where the normals n_a, n_b of a vertex's two passes are more than :data:`CORNER_DEG` apart, the
-    tool standing at the vertex finishes the fan of normals between them (a pocket corner rounded
-    by the ball, a wall's foot), a surface no pass predicts. A move m changes the fan's surface by
-    m·n for every n in it (first order), so the fan is not cut deeper only if m·n_a ≥ 0 and
-    m·n_b ≥ 0 (every n of the fan is a positive combination of the two). On the sample mould's
-    pocket corner (x 78, y 48–51) the walls' passes are predicted +88 and +203 µm, the fan between
-    them was machined −57…−97 µm, and the move that realises both walls at the corner vertex,
-    (+88, +203) µm, cut the fan to −250…−320 µm. The move is projected onto that cone (the
-    nearest move within it); the walls' own moves are carried by the vertices of the passes that
-    leave the corner (with ``split.end_piece_mm`` and via points, a short piece away).
-    Off by default (``correct.hold_corners``): on the whole sample program (with via points and
-    0.5 mm end pieces) that fan was cut to −250…−450 µm all the same, the x wall's foot beside it
-    went from +185 to +250 µm (its vertex no longer moves in) and the program got worse, 37.2 →
-    57.3 % after three rounds; window x 74–82, y 36–40 (the slope beside a wall's foot, which
-    :func:`corner_fans` guards) improved, 42.9 → 31.1 %.
-
-    Parameters
-    ----------
-    total_um : (v, 3) float, vertex moves from the original program, µm
-    own_normals : (v, 2, 3) float, unit normals of the vertex's two passes (zeros: none)
-
-    Returns
-    -------
-    ((v, 3) limited moves in µm, (v,) bool: the vertex is a corner)
-    """
-    out = np.array(total_um, dtype=float, copy=True)
-    na, nb = own_normals[:, 0], own_normals[:, 1]
-    both = (np.abs(na).sum(axis=1) > 0) & (np.abs(nb).sum(axis=1) > 0)
-    corner = both & (np.einsum("ij,ij->i", na, nb) < np.cos(np.radians(CORNER_DEG)))
-    if not corner.any():
-        return out, corner
-    m, a, b = out[corner], na[corner], nb[corner]
-    sa, sb = np.einsum("ij,ij->i", m, a), np.einsum("ij,ij->i", m, b)
-    ab = np.einsum("ij,ij->i", a, b)
-    # the nearest point of the cone {m·a ≥ 0, m·b ≥ 0}: m itself, m on one face, or m with its part
-    # in the plane of a and b taken off (the edge)
-    on_a = m - np.minimum(sa, 0.0)[:, None] * a
-    on_b = m - np.minimum(sb, 0.0)[:, None] * b
-    det = np.maximum(1.0 - ab ** 2, 1e-12)
-    alpha, beta = (sa - ab * sb) / det, (sb - ab * sa) / det
-    edge = m - alpha[:, None] * a - beta[:, None] * b
-    tol = -1e-9
-    cands = np.stack([m, on_a, on_b, edge], 1)
-    feasible = ((np.einsum("vkj,vj->vk", cands, a) >= tol) & (np.einsum("vkj,vj->vk", cands, b) >= tol))
-    feasible[:, 3] = True
-    dist = np.where(feasible, np.linalg.norm(cands - m[:, None], axis=2), np.inf)
-    out[corner] = cands[np.arange(m.shape[0]), dist.argmin(axis=1)]
-    return out, corner
-
-
-def corner_fans(tips, own_normals, corner, shape, step_deg=CORNER_FAN_STEP_DEG):
-    """Points of the fan of surface the tool finishes standing at each corner vertex.
-
-    For every corner (see :func:`corner_limit`) the normals between n_a and n_b (on the great
-    circle, at most ``step_deg`` apart, both ends included) and, for each, the point of the tool at
-    the vertex whose surface has that normal (contact angle q = arccos n_z, at most 90°). The
-    gouge limit guards them like generating points, so that the vertices beside a corner (a slope
-    pass 0.1–0.3 mm before a wall's foot, moved +0.2 mm towards the wall) do not cut into it.
-
-    Returns
-    -------
-    ((f, 3) points in mm, (f, 3) unit normals, (f,) int: the index of the corner among ``corner``'s
-    true rows)
-    """
-    rows = np.flatnonzero(corner)
-    if rows.size == 0:
-        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64)
-    a, b = own_normals[rows, 0], own_normals[rows, 1]
-    angle = np.arccos(np.clip(np.einsum("ij,ij->i", a, b), -1.0, 1.0))
-    k = np.maximum(np.ceil(np.degrees(angle) / step_deg - 1e-9).astype(np.int64), 1) + 1
-    which = np.repeat(np.arange(rows.size), k)
-    t = (np.arange(which.size) - np.repeat(np.cumsum(k) - k, k)) / (k[which] - 1)
-    w = angle[which]
-    sw = np.maximum(np.sin(w), 1e-12)
-    n = (np.sin((1 - t) * w) / sw)[:, None] * a[which] + (np.sin(t * w) / sw)[:, None] * b[which]
-    n /= np.maximum(np.linalg.norm(n, axis=1), 1e-12)[:, None]
-    q = np.degrees(np.arccos(np.clip(n[:, 2], 0.0, 1.0)))
-    phi = np.degrees(np.arctan2(-n[:, 1], -n[:, 0]))
-    return tips[rows][which] + shape.point(q, phi), n, which
-
-
-def gouge_limit(total_um, tips, own, own_normals, gen_xyz, gen_normals, gen_pass, shape, sweeps=3,
-                fan_free=None):
+def gouge_limit(total_um, tips, own, own_normals, gen_xyz, gen_normals, gen_pass, shape, sweeps=3):
     """Limit vertex moves so the tool does not cut into the surface other passes generate.
 
     A vertex is moved for the errors of its own two passes; the tool at the moved vertex must not
@@ -448,13 +233,10 @@ def gouge_limit(total_um, tips, own, own_normals, gen_xyz, gen_normals, gen_pass
     total_um : (v, 3) float, vertex moves from the original program, µm (a limited copy is returned)
     tips : (v, 3) float, tool tip at the original vertices, mm
     own : (v, 2) int, index of the vertex's own passes into ``gen_pass``'s numbering (−1: none)
-    own_normals : (v, K, 3) float, unit normals of their surfaces (K = 2: one per pass; 4 with
-        their second contacts; zeros: none)
+    own_normals : (v, 2, 3) float, unit normals of their surfaces (zeros: none)
     gen_xyz, gen_normals : (g, 3) float, generating points (mm) and their unit normals
     gen_pass : (g,) int, pass index of each generating point
     shape : :class:`stages.geometry.ToolShape`
-    fan_free : (v,) bool, optional: vertices the points of corner fans (``gen_pass`` < −1,
-        :func:`corner_fans`) do not limit
 
     Returns
     -------
@@ -477,8 +259,6 @@ def gouge_limit(total_um, tips, own, own_normals, gen_xyz, gen_normals, gen_pass
         d0, u = shape.clearance(gen_xyz[j] - tips[i])
         keep = (d0 < size[i] / 1000.0) & (d0 >= -GOUGE_INSIDE_MM) & np.isfinite(u).all(axis=1)
         keep &= (gen_pass[j] != own[i, 0]) & (gen_pass[j] != own[i, 1])
-        if fan_free is not None:
-            keep &= ~(fan_free[i] & (gen_pass[j] < -1))
         i, j, d0, u = i[keep], j[keep], d0[keep], u[keep]
         same = np.einsum("pj,pkj->pk", gen_normals[j], own_normals[i]).max(axis=1) > cos_same
         i, u, limit = i[~same], u[~same], np.maximum(d0[~same], 0.0) * 1000.0
@@ -551,16 +331,14 @@ class _NearTool:
 
 
 def _errors_per_pass(passes: pa.Table, errors: pa.Table):
-    """Error, normal, has-flag and tool deflection vector (µm; zero where the table has none) per
-    pass row (passes in pass_id order)."""
+    """Error, unit normal and has-flag per pass row (passes in pass_id order)."""
     pid = _col(passes, "pass_id", np.int64)
     n = pid.size
     err = np.zeros(n)
     nrm = np.zeros((n, 3))
     has = np.zeros(n, bool)
-    defl = np.zeros((n, 3))
     if errors is None or errors.num_rows == 0 or n == 0:
-        return err, nrm, has, defl
+        return err, nrm, has
     eid = _col(errors, "pass_id", np.int64)
     order = np.argsort(pid, kind="stable")
     pos = np.searchsorted(pid[order], eid)
@@ -575,29 +353,6 @@ def _errors_per_pass(passes: pa.Table, errors: pa.Table):
     length = np.linalg.norm(nn, axis=1)
     good = np.isfinite(e) & np.isfinite(length) & (length > 1e-12)
     err[rows[good]] = e[good]
-    nrm[rows[good]] = nn[good] / length[good, None]
-    has[rows[good]] = True
-    if "defl_x_um" in errors.column_names:
-        d = np.stack([_col(errors, "defl_x_um"), _col(errors, "defl_y_um"), np.zeros(errors.num_rows)], 1)
-        defl[rows[good]] = np.nan_to_num(d[good])
-    return err, nrm, has, defl
-
-
-def _second_per_pass(passes: pa.Table, errors: pa.Table):
-    """Error, unit normal and has-flag of each pass's second contact (``err2_um``, ``nx2``…; none
-    where the table has no such columns: measured residuals, older tables)."""
-    n = passes.num_rows
-    err, nrm, has = np.zeros(n), np.zeros((n, 3)), np.zeros(n, bool)
-    if errors is None or errors.num_rows == 0 or n == 0 or "err2_um" not in errors.column_names:
-        return err, nrm, has
-    pid = _col(passes, "pass_id", np.int64)
-    eid = _col(errors, "pass_id", np.int64)
-    rows = np.minimum(np.searchsorted(pid, eid), n - 1)
-    e2 = _col(errors, "err2_um")
-    nn = _xyz(errors, ("nx2", "ny2", "nz2"))
-    length = np.linalg.norm(nn, axis=1)
-    good = (pid[rows] == eid) & np.isfinite(e2) & np.isfinite(length) & (length > 1e-12)
-    err[rows[good]] = e2[good]
     nrm[rows[good]] = nn[good] / length[good, None]
     has[rows[good]] = True
     return err, nrm, has
@@ -623,9 +378,8 @@ def _straight_through(pstart, pend):
     return np.where(straight[:, None], t, 0.0)
 
 
-def _generating_points(generating: pa.Table, passes: pa.Table, second: bool = False):
-    """Generating points (mm), unit normals and pass index (into ``passes`` sorted by pass id);
-    with ``second`` the second contacts as well."""
+def _generating_points(generating: pa.Table, passes: pa.Table):
+    """Generating points (mm), unit normals and pass index (into ``passes`` sorted by pass id)."""
     if generating.num_rows == 0 or passes.num_rows == 0:
         return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64)
     xyz = _xyz(generating, ("gen_x_mm", "gen_y_mm", "gen_z_mm"))
@@ -636,59 +390,7 @@ def _generating_points(generating: pa.Table, passes: pa.Table, second: bool = Fa
     ok = (ids[k] == gid) & np.isfinite(xyz).all(axis=1) & np.isfinite(n).all(axis=1)
     n = n[ok] / np.maximum(np.linalg.norm(n[ok], axis=1), 1e-12)[:, None]
     xyz, k = xyz[ok], k[ok]
-    if second and "nx2" in generating.column_names:          # second contacts are surfaces too
-        xyz2 = _xyz(generating, ("gen2_x_mm", "gen2_y_mm", "gen2_z_mm"))
-        n2 = _xyz(generating, ("nx2", "ny2", "nz2"))
-        k2 = np.minimum(np.searchsorted(ids, gid), ids.size - 1)
-        ok2 = (ids[k2] == gid) & np.isfinite(xyz2).all(axis=1) & np.isfinite(n2).all(axis=1)
-        n2 = n2[ok2] / np.maximum(np.linalg.norm(n2[ok2], axis=1), 1e-12)[:, None]
-        xyz, n, k = np.vstack([xyz, xyz2[ok2]]), np.vstack([n, n2]), np.concatenate([k, k2[ok2]])
     return xyz, n, k
-
-
-def contact_lines(gen_xyz, gen_normals, gen_pass, pstart, pend, shape, spacing_mm=CONTACT_SPACING_MM):
-    """Points along the line each pass generates: its generating point carried along the pass.
-
-    A pass's one generating point stands for the whole strip it leaves; on a straight pass with
-    one normal that strip is the contact point translated along the move, C + (s − t)(B − A) for
-    s in [0, 1], where t places the prediction point on the pass. t is read back from C: the tool
-    tip whose contact point of normal n is C is C − c(n), with c(n) = (R − rc)·ĥ + rc·(ẑ − n)
-    (ĥ the horizontal unit of −n), projected onto the pass. A 4 mm pass climbing a wall has its
-    generating point 2 mm above the wall's foot, where a tool moved for a corner pass beside it
-    cuts (the sample's pocket corner x 78, y 36.6: a vertex 0.16 mm from the wall moved 223 µm
-    towards it, the wall's foot −50 µm after one round).
-
-    Parameters
-    ----------
-    gen_xyz, gen_normals : (g, 3) float, generating points (mm) and unit normals
-    gen_pass : (g,) int, pass index of each point into ``pstart``/``pend``
-    pstart, pend : (P, 3) float, tool tips at the passes' start and end, mm
-    shape : :class:`stages.geometry.ToolShape`
-    spacing_mm : float, largest distance between points along a line
-
-    Returns
-    -------
-    (points (m, 3) mm, normals (m, 3), pass index (m,)): the generating points first, then both
-    ends of every line and points between them no farther apart than ``spacing_mm``.
-    """
-    gen_xyz = np.asarray(gen_xyz, dtype=float).reshape(-1, 3)
-    if len(gen_xyz) == 0:
-        return gen_xyz, np.asarray(gen_normals, dtype=float).reshape(-1, 3), np.asarray(gen_pass)
-    R, rc = shape.radius_mm, shape.corner_mm
-    a, b = pstart[gen_pass], pend[gen_pass]
-    h = -gen_normals[:, :2]
-    hl = np.linalg.norm(h, axis=1)
-    h = np.where(hl[:, None] > 1e-9, h / np.maximum(hl, 1e-12)[:, None], 0.0)
-    offset = np.column_stack([(R - rc) * h, np.zeros(len(h))]) + rc * ([0.0, 0.0, 1.0] - gen_normals)
-    ab = b - a
-    ll = np.einsum("ij,ij->i", ab, ab)
-    t = np.clip(np.einsum("ij,ij->i", gen_xyz - offset - a, ab) / np.maximum(ll, 1e-18), 0.0, 1.0)
-    n_seg = np.maximum(np.ceil(np.sqrt(ll) / spacing_mm - 1e-9).astype(np.int64), 1)
-    rows = np.repeat(np.arange(len(gen_xyz)), n_seg + 1)
-    s = (np.arange(rows.size) - np.repeat(np.cumsum(n_seg + 1) - (n_seg + 1), n_seg + 1)) / n_seg[rows]
-    pts = gen_xyz[rows] + (s - t[rows])[:, None] * ab[rows]
-    return (np.vstack([gen_xyz, pts]), np.vstack([gen_normals, gen_normals[rows]]),
-            np.concatenate([gen_pass, gen_pass[rows]]))
 
 
 def _params(params: dict) -> dict:
@@ -702,34 +404,9 @@ def _normal_tol(p: dict) -> float:
     return NORMAL_TOL_DEG if p.get("normal_tol_deg") is None else float(p["normal_tol_deg"])
 
 
-def _secant_fraction(step, prev_step, prev_frac, fallback, relax):
-    """Fraction of this round's ``step`` each vertex takes: the secant of the rounds' fixed point.
-
-    Round k asked for r_k = T(x_{k-1}) − x_{k-1} (``step``); the last round asked for r_{k-1}
-    (``prev_step``) and moved Δx = frac_{k-1}·r_{k-1}. Along Δx the residual changes by
-    σ = (r_k − r_{k-1})·Δx / |Δx|² per µm moved, σ = g − 1 with g the gain of the error on the
-    move (a heavy cut on a wall: moving in adds material, the deflection grows, 0 < g < 1; an
-    error that falls as the path moves in, g < 0). The root of the linear residual is one step of
-    1/(1 − g) = −1/σ: exact in one round for an error linear in the move, where the plain fixed
-    point leaves g^k (the sample's wall passes: g ≈ 0.45). Clipped to [MIN_RELAX, ``relax`` ×
-    MAX_ACCEL]; where the last move was too small to tell (< ACCEL_MIN_UM), the residual did not
-    fall along it (σ ≥ 0, no contraction) or turned away from its line (|cos(r_k, r_{k−1})| <
-    ACCEL_MIN_COS), ``fallback`` (the halving rule).
-    """
-    dx = prev_frac[:, None] * prev_step
-    dx2 = np.einsum("ij,ij->i", dx, dx)
-    sigma = np.einsum("ij,ij->i", step - prev_step, dx) / np.maximum(dx2, 1e-30)
-    along = np.abs(np.einsum("ij,ij->i", step, prev_step)) >= ACCEL_MIN_COS * (
-        np.linalg.norm(step, axis=1) * np.linalg.norm(prev_step, axis=1))
-    ok = (dx2 > ACCEL_MIN_UM ** 2) & (sigma < 0) & np.isfinite(sigma) & along
-    mu = np.clip(-1.0 / np.where(ok, sigma, -1.0), MIN_RELAX, relax * MAX_ACCEL)
-    return np.where(ok, mu, fallback)
-
-
 def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: dict,
                  previous: pa.Table | None = None, relax: float | None = None,
-                 accelerate: bool = False, generating: pa.Table | None = None,
-                 tool_shape=None, node_moves: np.ndarray | None = None) -> pa.Table:
+                 generating: pa.Table | None = None, tool_shape=None) -> pa.Table:
     """One correction round: move every NC vertex of ``blocks`` against ``errors``.
 
     Parameters
@@ -747,15 +424,9 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
         falls faster than the path moves in, or a generating point that jumps between rounds) has
         its fraction halved (down to :data:`MIN_RELAX`) and keeps it; elsewhere it takes the full
         step, so a smooth prediction converges as fast as the plain fixed point
-    accelerate : rounds 2…: the secant step of the last two rounds (:func:`_secant_fraction`)
     generating, tool_shape : the ``generating`` table of the ORIGINAL program's passes and the
         tool (:class:`stages.geometry.ToolShape`): with both, moves are limited so that the tool
         does not cut into the surface other passes generate (:func:`gouge_limit`); else unlimited
-    node_moves : (passes + 1, 3) moves (µm) of the pass-end nodes (node k: start of pass k, the last
-        the end of the last pass) found elsewhere — a fit to measured points, see
-        ``bench/closed_loop_vm_samples.py --fit-points`` — used instead of para 0084's from
-        ``errors``; ``errors`` still say which vertices are corrected, and the accumulation, gouge
-        limit, clip and arc refit are the same
 
     Returns
     -------
@@ -777,9 +448,7 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
     end = _xyz(blk, ("x1_mm", "y1_mm", "z1_mm"))
 
     passes = passes.sort_by("pass_id") if passes.num_rows else passes
-    err, nrm, has, defl = _errors_per_pass(passes, errors)
-    if not p["deflection_vector"]:
-        defl = np.zeros_like(defl)
+    err, nrm, has = _errors_per_pass(passes, errors)
     n_pass = passes.num_rows
     if n_pass:
         pb0 = _col(passes, "block_no", np.int64)
@@ -791,38 +460,9 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
         has_a = np.concatenate((has, [False]))
         eb, ea = np.concatenate(([0.0], err)), np.concatenate((err, [0.0]))
         nb_, na_ = np.vstack([np.zeros((1, 3)), nrm]), np.vstack([nrm, np.zeros((1, 3))])
-        # the deflection is undone as the vector it is: −δ̄ (the mean of the vertex's predicted
-        # passes) puts the tool back where it belongs, cusps included; what −δ̄ leaves of each
-        # pass's error along its normal (shape, runout, a neighbour's stand-off, the difference of
-        # the two passes' deflections) is realised by the moves along the normals, as before
-        db, da = np.vstack([np.zeros((1, 3)), defl]), np.vstack([defl, np.zeros((1, 3))])
-        d_mean = (db * has_b[:, None] + da * has_a[:, None]) / np.maximum(has_b.astype(float) + has_a, 1.0)[:, None]
-        node_move = vertex_moves(eb - np.einsum("ij,ij->i", d_mean, nb_), nb_, has_b,
-                                 ea - np.einsum("ij,ij->i", d_mean, na_), na_, has_a,
+        node_move = vertex_moves(eb, nb_, has_b, ea, na_, has_a,
                                  refine=_node_turn_cos(pstart, pend)[0] <= np.cos(np.radians(LINE_TURN_DEG)),
-                                 along_path=_straight_through(pstart, pend),
-                                 across_path=bool(p["refine_across_path"]),
-                                 normal_tol_deg=_normal_tol(p)) - d_mean
-        err2, nrm2, has2 = _second_per_pass(passes, errors)
-        has2 &= has & bool(p["second_contacts"])
-        if has2.any():
-            # a vertex beside a pass with a second contact realises all its passes' contacts
-            hb2, ha2 = np.concatenate(([False], has2)), np.concatenate((has2, [False]))
-            two = hb2 | ha2
-            eb2, ea2 = np.concatenate(([0.0], err2)), np.concatenate((err2, [0.0]))
-            nb2, na2 = np.vstack([np.zeros((1, 3)), nrm2]), np.vstack([nrm2, np.zeros((1, 3))])
-            es = np.stack([eb, eb2, ea, ea2], 1)[two]
-            ns = np.stack([nb_, nb2, na_, na2], 1)[two]
-            dm = d_mean[two]
-            node_move[two] = contact_moves(es - np.einsum("vkd,vd->vk", ns, dm), ns,
-                                           np.stack([has_b, hb2, has_a, ha2], 1)[two],
-                                           along_path=_straight_through(pstart, pend)[two],
-                                           normal_tol_deg=_normal_tol(p)) - dm
-        if node_moves is not None:
-            if np.shape(node_moves) != node_move.shape:
-                raise InputError(f"correct: node_moves has shape {np.shape(node_moves)}, the passes "
-                                 f"need {node_move.shape}")
-            node_move = np.asarray(node_moves, float)
+                                 along_path=_straight_through(pstart, pend), normal_tol_deg=_normal_tol(p))
         node_xyz = np.vstack([pstart, pend[-1:]])
         node_normal = nb_ * has_b[:, None] + na_ * has_a[:, None]
         # vertex → node: the last pass starting at or before the block
@@ -832,16 +472,7 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
         node = np.where(q < 0, 0, qc + 1)
         move = node_move[node]
         k_in = qc[inside]
-        e_in = err[k_in] - np.einsum("ij,ij->i", defl[k_in], nrm[k_in])
-        move[inside] = (vertex_moves(e_in, nrm[k_in], has[k_in], e_in, nrm[k_in], has[k_in])
-                        - defl[k_in] * has[k_in, None])
-        in2 = has2[k_in]
-        if in2.any():
-            k2 = k_in[in2]
-            ns = np.stack([nrm[k2], nrm2[k2]], 1)
-            es = np.stack([err[k2], err2[k2]], 1) - np.einsum("vkd,vd->vk", ns, defl[k2])
-            move[np.flatnonzero(inside)[in2]] = contact_moves(es, ns, np.ones((k2.size, 2), bool),
-                                                              normal_tol_deg=_normal_tol(p)) - defl[k2]
+        move[inside] = vertex_moves(err[k_in], nrm[k_in], has[k_in], err[k_in], nrm[k_in], has[k_in])
         vnormal = node_normal[node]
         vnormal[inside] = nrm[qc[inside]] * has[qc[inside], None]
         # the vertex's own passes (they set its move; the gouge limit checks the others)
@@ -849,10 +480,6 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
         own[inside] = qc[inside, None]
         n_own = np.where(has[:, None], nrm, 0.0)
         own_normals = np.where((own >= 0)[..., None], n_own[np.maximum(own, 0)], 0.0)
-        # the gouge limit's own surfaces include the second contacts (else a neighbouring piece's
-        # point on the same wall, which its ball touches, would hold the move into that wall)
-        n_own2 = np.where(has2[:, None], nrm2, 0.0)
-        own_surfaces = np.concatenate([own_normals, np.where((own >= 0)[..., None], n_own2[np.maximum(own, 0)], 0.0)], 1)
         # pass coordinates are the tool tip; blocks may be the ball centre (control_point: center)
         frame = np.median(end[~inside] - node_xyz[node[~inside]], axis=0) if (~inside).any() else np.zeros(3)
     else:
@@ -885,9 +512,6 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
         asked = _col(previous, "change_um") / prev_frac
         contracting = np.linalg.norm(step, axis=1) <= asked * (1 + 1e-9) + _EPS_UM
         step_frac = np.minimum(float(relax), np.where(contracting, prev_frac, np.maximum(prev_frac / 2, MIN_RELAX)))
-        if accelerate and "step_x_um" in previous.column_names:
-            step_frac = _secant_fraction(step, _xyz(previous, ("step_x_um", "step_y_um", "step_z_um")),
-                                         prev_frac, step_frac, float(relax))
         total_um = last_um + step_frac[:, None] * step
     if previous is not None and previous.num_rows:
         # a vertex no pass of this round predicts (a render lost its pass on the corrected path)
@@ -895,25 +519,10 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
         stale = np.linalg.norm(vnormal, axis=1) <= 1e-12
         total_um[stale] = (last[stale] - orig[stale]) * 1000.0
     gouge_um = np.zeros(nb)
-    corner = np.zeros(nb, bool)
-    if n_pass and (p["hold_corners"] or p["guard_fans"]):
-        held, corner = corner_limit(total_um, own_normals)
-        if p["hold_corners"]:
-            gouge_um += np.linalg.norm(held - total_um, axis=1)
-            total_um = held
     if n_pass and generating is not None and tool_shape is not None:
-        gen_xyz, gen_n, gen_pass = _generating_points(generating, passes, bool(p["second_contacts"]))
-        if p["gouge_lines"]:
-            gen_xyz, gen_n, gen_pass = contact_lines(gen_xyz, gen_n, gen_pass, pstart, pend, tool_shape)
-        if corner.any():
-            # the corners' fans are surfaces too (of no pass: ids below −1, one per corner)
-            fan_xyz, fan_n, fan_k = corner_fans(orig - frame, own_normals, corner, tool_shape)
-            gen_xyz, gen_n = np.vstack([gen_xyz, fan_xyz]), np.vstack([gen_n, fan_n])
-            gen_pass = np.concatenate([gen_pass, -2 - fan_k])
-        total_um, taken = gouge_limit(total_um, orig - frame, own, own_surfaces, gen_xyz, gen_n,
-                                      gen_pass, tool_shape,
-                                      fan_free=None if p["hold_corners"] else corner)
-        gouge_um += taken
+        gen_xyz, gen_n, gen_pass = _generating_points(generating, passes)
+        total_um, gouge_um = gouge_limit(total_um, orig - frame, own, own_normals, gen_xyz, gen_n,
+                                         gen_pass, tool_shape)
     size = np.linalg.norm(total_um, axis=1)
     clipped = size > max_move * (1 + 1e-12)
     total_um[clipped] *= (max_move / size[clipped])[:, None]
@@ -1218,35 +827,6 @@ def errors_on_passes(errors: pa.Table, passes_from: pa.Table, passes_to: pa.Tabl
                           pa.array(target[ok], out.schema.field("pass_id").type))
 
 
-def on_first_surface(errors: pa.Table, first: pa.Table | None, max_deg: float) -> pa.Table:
-    """The rows of ``errors`` whose normal lies within ``max_deg`` of the same pass's normal in ``first``.
-
-    A ball moved along its contact normal touches the surface at the same normal; a later round
-    whose prediction of a pass comes back with another normal has the ball touching elsewhere:
-    the path slid along the surface, or moved far enough that another surface or the rest stock
-    beside it comes first. Its error is then not the one the pass was corrected for, and its normal
-    sends the vertex across the row (on the sample's convex row y 61.2, normals of
-    (−0.67, 0, 0.74) in round 1 came back 10–16° towards −y with −280 instead of −150 µm in round
-    2 and 35–90° turned, onto a wall facing −y, in round 3; the rounds asked its vertices for steps
-    of 0.2–0.8 mm along y).
-    The dropped rows are filled from ``first`` by :func:`with_missing_from`: such a pass keeps its
-    round-1 error, as a pass the round did not predict. Passes without a row in ``first`` and rows
-    without a normal are kept.
-    """
-    if first is None or first.num_rows == 0 or errors.num_rows == 0:
-        return errors
-    fid = _col(first, "pass_id", np.int64)
-    order = np.argsort(fid, kind="stable")
-    eid = _col(errors, "pass_id", np.int64)
-    at = np.minimum(np.searchsorted(fid[order], eid), fid.size - 1)
-    known = fid[order][at] == eid
-    n_first = _xyz(first, ("nx", "ny", "nz"))[order][at]
-    cos = np.einsum("ij,ij->i", _xyz(errors, ("nx", "ny", "nz")), n_first)
-    # a row without a finite normal (no prediction) is left to with_missing_from as it is
-    swung = known & np.isfinite(cos) & (cos < np.cos(np.radians(max_deg)))
-    return errors.filter(pa.array(~swung)) if swung.any() else errors
-
-
 def with_missing_from(errors: pa.Table, fallback: pa.Table | None) -> pa.Table:
     """``errors`` plus the rows of ``fallback`` (same passes) for passes ``errors`` has no finite error for."""
     if fallback is None or fallback.num_rows == 0:
@@ -1289,9 +869,6 @@ def run(inputs: dict, params: dict) -> dict[str, pa.Table]:
     relax = None
     if inputs.get("round_passes") is not None:
         errors = errors_on_passes(errors, inputs["round_passes"], inputs["passes"])
-        keep_deg = _params(params)["keep_surface_deg"]
-        if keep_deg is not None:
-            errors = on_first_surface(errors, inputs.get("first_errors"), float(keep_deg))
         errors = with_missing_from(errors, inputs.get("first_errors"))
         relax = float(_params(params)["relax"])
     shape = None
@@ -1302,5 +879,4 @@ def run(inputs: dict, params: dict) -> dict[str, pa.Table]:
         shape = tool_from_params(pick_entry(params["tool"], program_tool_number(inputs["passes"]), "tool"))
     return {"corrected": correct_once(inputs["blocks"], inputs["passes"], errors, params,
                                       previous=inputs.get("corrected"), relax=relax,
-                                      accelerate=bool(_params(params)["accelerate"]),
                                       generating=inputs.get("generating"), tool_shape=shape)}

@@ -21,8 +21,7 @@ For the generating point C of a pass (``generating``: φ_C, q_C, n_C) and each f
   pass itself but near the ends of passes shorter than a revolution's feed).
 - The deflection vector (dx, dy, 0)(θ_C) of the passage that leaves C is kept (``defl_x_um``,
   ``defl_y_um``): its part along n is in the error, its tangential part shifts the cusps between
-  rows; ``correct.deflection_vector`` undoes it as a vector (the tool put back where it
-  belongs, not only the surface along n).
+  rows.
 - A pass's second contact with the design surface (``generating``'s ``*2`` columns: a ball in a
   vertical corner, on a floor beside a wall) gets its own error by the same kernel with the pass's
   own deflection, read where a flute passes it: ``err2_um`` along ``nx2``…, NaN where there is none.

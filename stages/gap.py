@@ -60,7 +60,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
@@ -178,16 +178,6 @@ def associate(meas: pa.Table, passes: pa.Table, errors: Optional[pa.Table], tool
 
 
 # ---------------------------------------------------------------- the deepest tooth passage at a point
-# Whether a neighbouring move whose tool is nearest a point at its own end takes part with its own
-# deflection. False: the deflection cannot change at a vertex (see ``passage_geometry``). The errors
-# stage's ``_deepest_passage`` still counts them: with the same rule there, the sample's boss-foot
-# closed loop went from 63.0 % / 48.8 % of before (1 / 3 rounds) to 68.5 % / 88.8 %
-# (``bench/closed_loop_pipeline_samples.py --prune 0 68 78 41 45``). Measured on the gap job's
-# effect-free reference part (noise-free, ``bench/gap_reference_floor.py``): prediction error
-# 0.139 → 0.122 µm RMS, beyond 1 mm of a corner 0.112 → 0.080 µm (max 1.25 → 0.53 µm), mean within
-# 0.25 mm +0.17 → +0.08 µm, and the floor no longer reads as a servo lag (+22 µm, λ 0.05 mm →
-# +0.08 µm).
-PASS_END_PASSAGES = False
 
 
 def passage_geometry(F: dict, passes: pa.Table, tool: dict) -> dict:
@@ -250,8 +240,9 @@ def passage_geometry(F: dict, passes: pa.Table, tool: dict) -> dict:
         seg = tip1[j] - tip0[j]
         a, b = tip0[j] + ta[:, None] * seg, tip0[j] + tb[:, None] * seg
         dist, t, q, height, _ = pe.sweep_distance(c_on[r], a, b, R, rc, stick)
-        # a move reaches the point only from inside its extent (``PASS_END_PASSAGES``)
-        inside = np.ones(len(t), bool) if PASS_END_PASSAGES else pe.reaches_inside(t, ta, tb)
+        # a move reaches the point only from inside its extent: the deflection cannot change at a
+        # vertex (measured on the gap reference part: counting pass ends, 0.122 → 0.139 µm RMS)
+        inside = pe.reaches_inside(t, ta, tb)
         r, j, a, b, t = r[inside], j[inside], a[inside], b[inside], t[inside]
         dist, q, height, seg = dist[inside], q[inside], height[inside], seg[inside]
         rel = c_on[r] - (a + t[:, None] * (b - a))

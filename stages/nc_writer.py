@@ -54,8 +54,7 @@ def _table_np(table: pa.Table, name: str, dtype=float):
 _VIA_LETTERS = frozenset(b"NGXYZF")
 
 
-def via_blocks(data: bytes, blocks: pa.Table, max_mm: float, end_mm: float = 0.0,
-               corner_mm: float = 0.0, chord_tol_mm: float | None = None,
+def via_blocks(data: bytes, blocks: pa.Table, max_mm: float, chord_tol_mm: float | None = None,
                corner_via_mm: float = 0.0) -> pa.Table:
     """``blocks`` with every long plain G1 line cut into the split stage's equal pieces, and with
     ``chord_tol_mm`` every plain arc into the split stage's chords.
@@ -66,9 +65,6 @@ def via_blocks(data: bytes, blocks: pa.Table, max_mm: float, end_mm: float = 0.0
     blocks : its ``blocks`` table (one row per block, one block per line)
     max_mm : ``split.max_pass_mm``: a line of length L becomes ceil(L / max_mm) blocks, exactly the
         pieces :func:`stages.split.split_long` makes, so the passes do not change
-    end_mm : ``split.end_piece_mm``: the length of the first and last piece (0: equal pieces)
-    corner_mm : ``split.corner_piece_mm``: the length of the piece at a path corner
-        (:func:`stages.split.corner_ends`; 0: none); such a line is cut even if it is short
     chord_tol_mm : ``split.chord_tol_mm``; None: arcs are not cut. An absolute metric arc (G2/G3
         word on its own line, no words but N, G, X, Y, Z, I, J, K, R, F; G words only 2, 3, 17,
         18, 19) of two or more chords becomes its chords as G1 pieces, the last chord staying the
@@ -96,14 +92,10 @@ def via_blocks(data: bytes, blocks: pa.Table, max_mm: float, end_mm: float = 0.0
     from stages.split import corner_ends, split_long
     length = np.linalg.norm(p1 - p0, axis=1)
     k = np.ceil(length / max_mm - 1e-9).astype(np.int64)
-    corner = corner_ends(p0, p1, motion == 1) if corner_mm > 0 else None
     pieces = k > 1
     if corner_via_mm > 0:                        # the lines that get a via point at a corner
         cv_start, cv_end = corner_ends(p0, p1, motion == 1)
         pieces |= (cv_start | cv_end) & (length >= 2 * corner_via_mm * (1 - 1e-9))
-    if corner is not None:                       # the lines split_long gives a corner piece
-        pieces |= (corner[0] | corner[1]) & (length - corner_mm * (corner[0].astype(float) + corner[1])
-                                             >= corner_mm * (1 - 1e-9))
     plain = ~_table_np(blocks, "incremental", bool) & ~_table_np(blocks, "inch", bool)
     # one block on the line
     plain &= np.bincount(line, minlength=line.max() + 1)[line] == 1
@@ -131,7 +123,7 @@ def via_blocks(data: bytes, blocks: pa.Table, max_mm: float, end_mm: float = 0.0
             arc_cut &= ~(np.bincount(w_line[bad], minlength=n_lines) > 0)[line] & own_g[line]
     if not (cut.any() or arc_cut.any()):
         return blocks
-    idx, q0, q1, _ = split_long(np.arange(n), p0, p1, cut, max_mm, end_mm, corner_mm, corner)
+    idx, q0, q1, _ = split_long(np.arange(n), p0, p1, cut, max_mm)
     via_only = np.zeros(idx.size, bool)
     if corner_via_mm > 0 and cut.any():
         idx, q0, q1, via_only = _corner_vias(idx, q0, q1, cut & cv_start, cut & cv_end, corner_via_mm)

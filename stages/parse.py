@@ -27,8 +27,7 @@ INPUTS = ("program_file",)
 OUTPUTS = ("parse_status", "blocks")
 # via points (stages.nc_writer.via_blocks): long G1 lines cut at the split stage's pass length,
 # plain arcs at its chords
-PARAMS = ("correct.via_points", "correct.corner_via_mm", "split.max_pass_mm", "split.end_piece_mm",
-          "split.corner_piece_mm", "split.chord_tol_mm")
+PARAMS = ("correct.via_points", "correct.corner_via_mm", "split.max_pass_mm", "split.chord_tol_mm")
 
 
 def used_params(params: dict) -> dict:
@@ -525,8 +524,6 @@ def run(inputs: dict, params: dict) -> dict[str, pa.Table]:
         if params.get("correct", {}).get("via_points"):
             from stages.nc_writer import via_blocks
             blocks = via_blocks(data, blocks, float(params["split"]["max_pass_mm"]),
-                                float(params["split"].get("end_piece_mm", 0.0)),
-                                float(params["split"].get("corner_piece_mm", 0.0)),
                                 float(params["split"]["chord_tol_mm"]),
                                 float(params["correct"].get("corner_via_mm") or 0.0))
     except InputError as e:

@@ -6,13 +6,7 @@ Here:
 
 - arcs (G2/G3, helical included) become chords whose sagitta stays within ``split.chord_tol_mm``;
 - cutting moves longer than ``split.max_pass_mm`` (by more than :data:`PIECE_SLACK` of it, so that a
-  corrected program splits as the original did) are cut into equal pieces (with
-  ``split.end_piece_mm`` > 0, after a piece that long at each end);
-- with ``split.corner_piece_mm`` > 0, a G1 line that meets another G1 line at a path corner (the
-  direction turns by more than :data:`CORNER_TURN_DEG`) gets a piece that long at that end, if its
-  rest is at least as long: the passes beside a corner are predicted apart from the line's body
-  (the tooth passages of the other line at the corner finish the surface there, see
-  ``passage_envelope``) and, with ``correct.via_points``, corrected apart;
+  corrected program splits as the original did) are cut into equal pieces;
 - blocks whose end is a via point inside a pass (``via_only``: ``correct.corner_via_mm``, a cut
   the parse stage makes beside a path corner) are joined with the next block into one pass, so the
   passes are those of the uncut program, while the via point lies within ``chord_tol_mm`` of the
@@ -40,8 +34,7 @@ INPUTS = ("parse_status", "blocks")
 OUTPUTS = ("passes", "programs")
 PARAMS = ("split", "machine.rapid_mm_min", "tool")
 
-# a path turning by more than this between two G1 lines is a corner (``split.corner_piece_mm``);
-# the same angle as ``stages.correct.CORNER_DEG`` between two passes' normals
+# a path turning by more than this between two G1 lines is a corner (``correct.corner_via_mm``)
 CORNER_TURN_DEG = 30.0
 
 _XYZ0 = ("x0_mm", "y0_mm", "z0_mm")
@@ -149,18 +142,11 @@ def piece_count(length, max_len):
     return np.maximum(1, np.ceil(np.asarray(length, float) / max_len - PIECE_SLACK)).astype(np.int64)
 
 
-def split_long(owner, p0, p1, is_cut, max_len, end_len=0.0, corner_len=0.0, corner=None):
+def split_long(owner, p0, p1, is_cut, max_len):
     """Cut cutting segments longer than ``max_len`` into equal pieces.
 
     "Longer" allows :data:`PIECE_SLACK` of a piece: a 0.502 mm move with ``max_len`` 0.5 mm is one
     piece, a 1.004 mm move two (:func:`piece_count`).
-
-    With ``end_len`` > 0 such a segment first gets a piece of ``end_len`` at each end and its middle
-    is cut into equal pieces (``split.end_piece_mm``). With ``corner_len`` > 0 a cutting segment
-    (of any length) whose start or end is a path corner (``corner`` = (at_start, at_end), see
-    :func:`corner_ends`) gets a piece of ``corner_len`` at that end where it has no end piece,
-    if what is left is at least ``corner_len`` long (``split.corner_piece_mm``). A corner vertex
-    then has a via point that carries the line's own correction a short piece away.
 
     Returns
     -------
@@ -168,31 +154,13 @@ def split_long(owner, p0, p1, is_cut, max_len, end_len=0.0, corner_len=0.0, corn
     of a cut one.
     """
     length = np.linalg.norm(p1 - p0, axis=1)
-    long_ = is_cut & (piece_count(length, max_len) > 1)
-    ends = long_ & (end_len > 0) & (length > 2 * end_len * (1 + 1e-9))
-    s0 = np.where(ends, float(end_len), 0.0)
-    s1 = s0.copy()
-    if corner_len > 0 and corner is not None:
-        c0 = is_cut & np.asarray(corner[0], bool) & (s0 == 0)
-        c1 = is_cut & np.asarray(corner[1], bool) & (s1 == 0)
-        rest = length - s0 - s1 - corner_len * (c0.astype(float) + c1)
-        fits = rest >= corner_len * (1 - 1e-9)
-        s0 = np.where(c0 & fits, float(corner_len), s0)
-        s1 = np.where(c1 & fits, float(corner_len), s1)
-    h0, h1 = (s0 > 0).astype(np.int64), (s1 > 0).astype(np.int64)
-    middle = length - s0 - s1
-    k_mid = np.where(long_, piece_count(middle, max_len), 1)
-    k = k_mid + h0 + h1
+    k = np.where(is_cut, piece_count(length, max_len), 1)
     idx = np.repeat(np.arange(owner.size), k)
     first = np.concatenate(([0], np.cumsum(k)[:-1]))
     j = np.arange(idx.size) - first[idx]
-    # distance of every cut from the segment's start: [0, s0, s0 + m/k_mid, …, L − s1, L]
-    def at(jj):
-        jm = np.clip(jj - h0[idx], 0, k_mid[idx])
-        return np.where(jj >= k[idx], length[idx], s0[idx] * (jj > 0) + middle[idx] * jm / k_mid[idx])
-    d = (p1 - p0)[idx] / np.where(length > 0, length, 1.0)[idx, None]
-    q0 = p0[idx] + d * at(j)[:, None]
-    q1 = np.where((j + 1 == k[idx])[:, None], p1[idx], p0[idx] + d * at(j + 1)[:, None])
+    u = (p1 - p0)[idx] / np.where(length > 0, length, 1.0)[idx, None]
+    q0 = p0[idx] + u * (length[idx] * j / k[idx])[:, None]
+    q1 = np.where((j + 1 == k[idx])[:, None], p1[idx], p0[idx] + u * (length[idx] * (j + 1) / k[idx])[:, None])
     return owner[idx], q0, q1, k[idx] > 1
 
 
@@ -289,10 +257,7 @@ def split_blocks(blocks: pa.Table, params: dict) -> pa.Table:
 
     # 2. long cutting moves split; 3. short runs merged
     is_cut = motion[owner] != RAPID
-    corner_mm = float(sp.get("corner_piece_mm", 0.0))
-    corner = corner_ends(p0, p1, motion[owner] == 1) if corner_mm > 0 else None
-    owner, p0, p1, piece = split_long(owner, p0, p1, is_cut, sp["max_pass_mm"], sp.get("end_piece_mm", 0.0),
-                                      corner_mm, corner)
+    owner, p0, p1, piece = split_long(owner, p0, p1, is_cut, sp["max_pass_mm"])
     feed = np.nan_to_num(b["feed_mm_min"].astype(float))
     seg_feed = np.where(motion[owner] == RAPID, machine["rapid_mm_min"], feed[owner])
     same_kind = np.ones(owner.size, bool)

@@ -14,9 +14,7 @@ import numpy as np
 import pyarrow as pa
 import pytest
 
-from stages import InputError
-from stages.correct import (REFINE_MAX_RATIO, apply_corrected, contact_lines, contact_moves, corner_fans, corner_limit,
-                            correct_iteratively, correct_once, gouge_limit, vertex_moves)
+from stages.correct import (REFINE_MAX_RATIO, apply_corrected, correct_iteratively, correct_once, gouge_limit, vertex_moves)
 from stages.nc_writer import reverse_check, via_blocks, write_comp_table, write_ln_program, write_program
 from stages.parse import ARC_RADIUS_TOL_MM, parse_program
 from stages.split import split_blocks
@@ -61,62 +59,6 @@ def test_perpendicular_normals_realise_both_errors():
     ni, nj = np.array([[1.0, 0, 0]]), np.array([[0, 0, 1.0]])
     m = vertex_moves(np.array([12.0]), ni, np.array([True]), np.array([-5.0]), nj, np.array([True]))
     np.testing.assert_allclose(m[0], [-12.0, 0.0, 5.0], atol=1e-12)
-
-
-def test_contact_moves_realise_both_walls_of_a_corner():
-    """Two pieces of a climb up a vertical corner, each touching the x wall (n = −x) and the y wall
-    (n = −y), whichever each calls its first contact: the vertex between them moves by
-    −(e_x n_x + e_y n_y) = (e_x, e_y, 0) exactly (closed form: perpendicular normals). One error on
-    one wall only (the old one generating point per pass) moves along that wall's normal alone."""
-    nx, ny = np.array([-1.0, 0, 0]), np.array([0, -1.0, 0])
-    e = np.array([[85.0, 150.0, 150.0, 85.0]])
-    n = np.array([[nx, ny, ny, nx]])
-    m = contact_moves(e, n, np.ones((1, 4), bool))
-    np.testing.assert_allclose(m[0], [85.0, 150.0, 0.0], atol=1e-3)
-    # the same wall twice with different errors: their mean along it
-    m = contact_moves(np.array([[80.0, 150.0, 150.0, 90.0]]), n, np.ones((1, 4), bool))
-    np.testing.assert_allclose(m[0], [85.0, 150.0, 0.0], atol=1e-3)
-    # a pass without its second contact counts with its first only
-    m = contact_moves(e, n, np.array([[True, False, True, False]]))
-    np.testing.assert_allclose(m[0], [85.0, 150.0, 0.0], atol=1e-3)
-    m = contact_moves(e, n, np.array([[True, False, False, False]]))
-    np.testing.assert_allclose(m[0], [85.0, 0.0, 0.0], atol=1e-3)
-
-
-def test_second_contacts_move_every_vertex_of_a_corner_climb_alike():
-    """The climb of the sample's pocket corner cut into pieces, each with its contacts on both
-    walls but which wall comes first alternating as it did piece by piece on the sample: every
-    vertex moves by (e_x, e_y) along −n (closed form), the climb stays straight. Without the second
-    contacts (or with ``correct.second_contacts`` off) the vertices zig-zag."""
-    lines = [b"%", b"O1", b"G90 G17 G21", b"T1 M6", b"S1000 M3", b"G0 X0.000 Y0.000 Z-20.000",
-             *[f"G1 Z{z:.3f} F100".encode() for z in (-18.0, -16.0, -14.0, -12.0, -10.0)],
-             b"G0 Z10.000", b"M30", b"%", b""]
-    blocks, _ = parse_program(b"\n".join(lines), "t", "p")
-    passes = split_blocks(blocks, dict(SPLIT, split=dict(SPLIT["split"], merge_max_mm=0.0)))
-    cut = passes.filter(pa.compute.not_equal(passes.column("motion"), 0))
-    k = cut.num_rows
-    assert k == 5
-    ex, ey = 85.0, 150.0
-    first_y = np.arange(k) % 3 == 2                          # every third piece calls the y wall first
-    n1 = np.where(first_y[:, None], [0.0, -1.0, 0.0], [-1.0, 0.0, 0.0])
-    n2 = np.where(first_y[:, None], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0])
-    e1, e2 = np.where(first_y, ey, ex), np.where(first_y, ex, ey)
-
-    def moves(tab, second=True):
-        c = correct_once(blocks, passes, tab, {"correct": {"max_move_um": 500.0, "gouge_limit": False,
-                                                          "second_contacts": second}})
-        mv = np.stack([c.column(f"{a}_new_mm").to_numpy() - c.column(f"{a}_mm").to_numpy() for a in "xyz"], 1) * 1000
-        z = c.column("z_mm").to_numpy()
-        return mv[(z > -20.0 + 1e-6) & (z < -10.0 - 1e-6)]        # the vertices between the pieces
-    one = _errors(cut, e1, n1)
-    both = (one.append_column("err2_um", pa.array(e2)).append_column("nx2", pa.array(n2[:, 0]))
-            .append_column("ny2", pa.array(n2[:, 1])).append_column("nz2", pa.array(n2[:, 2])))
-    mv = moves(both)
-    assert len(mv) == 4
-    np.testing.assert_allclose(mv, np.tile([ex, ey, 0.0], (4, 1)), atol=1e-3)
-    zig = moves(one)
-    assert np.ptp(zig[:, 1]) > 100.0                          # y moves 0 or ~150 from vertex to vertex
-    np.testing.assert_array_equal(moves(both, second=False), zig)     # the option off: as before
 
 
 def test_oblique_normals_least_squares_magnitude():
@@ -695,59 +637,6 @@ def test_merged_pass_interior_and_untouched_neighbours():
     assert moved.sum() == b1[k] - b0[k] + 2
 
 
-def _three_moves_corrected(name: bytes, moves: list, n, defl, err, vector: bool):
-    """A plunge then two cutting moves (no merging), corrected with errors ``err`` along ``n`` and
-    deflection vectors ``defl`` per cutting pass: (vertex moves µm, line numbers)."""
-    lines = [b"%", name, b"G90 G17 G21", b"T1 M6", b"S1000 M3", b"G0 X0.000 Y0.000 Z1.000", b"G1 Z0.000 F100",
-             *moves, b"G0 Z10.000", b"M30", b"%", b""]
-    blocks, _ = parse_program(b"\n".join(lines), "t", "p")
-    passes = split_blocks(blocks, dict(SPLIT, split=dict(SPLIT["split"], merge_max_mm=0.0)))
-    cut = passes.filter(pa.compute.not_equal(passes.column("motion"), 0))
-    assert cut.num_rows == 3
-    d = np.asarray(defl, float)
-    tab = _errors(cut, err, n).append_column("defl_x_um", pa.array(d[:, 0])).append_column("defl_y_um", pa.array(d[:, 1]))
-    c = correct_once(blocks, passes, tab, {"correct": {"deflection_vector": vector}})
-    mv = np.stack([c.column(f"{k}_new_mm").to_numpy() - c.column(f"{k}_mm").to_numpy() for k in "xyz"], 1) * 1000
-    return mv, c.column("line_no").to_numpy()
-
-
-def test_deflection_is_undone_as_a_vector_where_a_slope_pass_meets_a_floor_pass():
-    # the sample's boss foot: a short pass on a 10° slope, then a floor pass, the tool pushed 45 µm
-    # sideways (across the feed). Along the normals the slope shows −7.8 µm, the floor nothing; one
-    # vertex cannot realise both along normals 10° apart within REFINE_MAX_RATIO, so the normals-only
-    # move lifts the floor. Undoing the deflection vector realises both exactly.
-    a = np.radians(10.0)
-    n = np.array([[0.0, 0.0, 1.0], [-np.sin(a), 0.0, np.cos(a)], [0.0, 0.0, 1.0]])   # plunge, slope, floor
-    delta = np.array([45.0, 0.0, 0.0])                        # the tool's deflection, µm
-    e = n @ delta                                             # 0, −7.81, 0
-    moves = {vec: _three_moves_corrected(b"O0011", [b"Y0.400", b"Y5.000"], n, [delta] * 3, e, vec)
-             for vec in (True, False)}
-    ln = moves[True][1]
-    shared = int(np.flatnonzero(ln == 8)[0])                  # end of the slope pass, start of the floor pass
-    m = moves[True][0][shared]
-    np.testing.assert_allclose(m, -delta, atol=1e-9)          # the tool is put back where it belongs
-    np.testing.assert_allclose([m @ n[1], m @ n[2]], [-e[1], -e[2]], atol=1e-9)   # both surfaces right
-    # along the normals alone the floor under that vertex is lifted (the closed loop's +2–3 µm)
-    mn = moves[False][0][shared]
-    assert mn @ n[2] > 1.0 and abs(mn @ n[1] + e[1]) > 1.0
-    # a vertex whose passes are all on the floor moves by −δ too (no error along n there, but the
-    # sideways shift of the cusps is undone)
-    np.testing.assert_allclose(moves[True][0][int(np.flatnonzero(ln == 9)[0])], -delta, atol=1e-9)
-
-
-def test_deflection_vectors_that_differ_at_a_wall_corner_still_realise_both_errors():
-    # two walls meeting at 90° (pass a along +x, wall normal +y; pass b along +y, wall normal −x),
-    # each pass with its own deflection: −δ̄ alone would realise only half of each; the moves
-    # along the normals take the rest, so both errors hold exactly (as without the vectors)
-    n = np.array([[0.0, 1.0, 0.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
-    d = np.array([[3.0, 12.0, 0.0], [3.0, 12.0, 0.0], [-20.0, 7.0, 0.0]])   # the second wall's along its feed: 7
-    e = np.einsum("ij,ij->i", n, d) + np.array([0.0, 0.8, -0.5])            # + shape errors
-    mv, ln = _three_moves_corrected(b"O0012", [b"X5.000", b"Y5.000"], n, d, e, True)
-    m = mv[int(np.flatnonzero(ln == 8)[0])]                                  # the corner
-    np.testing.assert_allclose([m @ n[1], m @ n[2]], [-e[1], -e[2]], atol=1e-9)
-    assert m[2] == pytest.approx(0.0, abs=1e-12)                           # δ has no z: nothing up or down
-
-
 class CylinderMachine:
     """Independent simulation of the seed's cylinder benchmark (seed 000 Fig. 16/20, paras 0091–0092).
 
@@ -868,12 +757,7 @@ def test_stage_run_matches_schema():
     assert table.num_rows == int((motion <= 3).sum())
     assert set(table.column("iteration").to_pylist()) == {1}
     assert correct.NAME == "correct" and correct.INPUTS == ("blocks", "passes", "errors", "generating")
-    assert correct.OUTPUTS == ("corrected",) and correct.PARAMS == ("correct.max_move_um", "correct.relax", "correct.accelerate",
-                                                                   "correct.deflection_vector", "correct.gouge_limit",
-                                                                   "correct.gouge_lines", "correct.refine_across_path",
-                                                                   "correct.hold_corners", "correct.guard_fans",
-                                                                   "correct.normal_tol_deg", "correct.second_contacts",
-                                                                   "correct.keep_surface_deg", "tool")
+    assert correct.OUTPUTS == ("corrected",) and "correct.max_move_um" in correct.PARAMS
 
 
 def test_incremental_program_random_moves_reverse_check():
@@ -1069,85 +953,7 @@ def test_pass_missing_in_a_later_round_keeps_its_round_one_error():
     np.testing.assert_allclose(without.column("move_um").to_numpy()[at], 7.0, rtol=1e-9)
 
 
-def test_on_first_surface_drops_rows_whose_normal_turned_past_the_limit():
-    """Normals turned by 0°, 29°, 31°, 90° and 180° from round 1 (about an axis of no special
-    direction): the rows at 31° and more are another surface; a pass round 1 did not predict and a
-    row without a normal stay."""
-    from stages.correct import on_first_surface
-    rng = np.random.default_rng(7)
-    n1 = rng.normal(size=(7, 3))
-    n1 /= np.linalg.norm(n1, axis=1)[:, None]
-    turn = np.radians([0.0, 29.0, 31.0, 90.0, 180.0, 45.0, 0.0])
-    axis = np.cross(n1, rng.normal(size=(7, 3)))
-    axis /= np.linalg.norm(axis, axis=1)[:, None]
-    # Rodrigues: n1 rotated about an axis perpendicular to it
-    nk = n1 * np.cos(turn)[:, None] + np.cross(axis, n1) * np.sin(turn)[:, None]
-    nk[6] = np.nan                                           # no prediction
-    first = pa.table({"pass_id": np.arange(6), "err_um": np.zeros(6), "nx": n1[:6, 0], "ny": n1[:6, 1],
-                      "nz": n1[:6, 2]})
-    later = pa.table({"pass_id": np.array([4, 0, 1, 2, 3, 9, 5]), "err_um": np.arange(7.0),
-                      "nx": nk[[4, 0, 1, 2, 3, 5, 6], 0], "ny": nk[[4, 0, 1, 2, 3, 5, 6], 1],
-                      "nz": nk[[4, 0, 1, 2, 3, 5, 6], 2]})
-    # pass 9 is not in round 1 (kept, though its normal nk[5] is 45° from n1[5]); pass 5's row
-    # carries nk[6] = NaN: no prediction, kept for with_missing_from
-    kept = on_first_surface(later, first, 30.0).column("pass_id").to_pylist()
-    assert kept == [0, 1, 9, 5]
-    assert on_first_surface(later, None, 30.0).num_rows == 7
-    assert on_first_surface(later, first, max_deg=95.0).column("pass_id").to_pylist() == [0, 1, 2, 3, 9, 5]
-
-
-def test_keep_surface_deg_enters_the_cache_key_only_when_set():
-    """Workflows without the option keep the correct stage's cache key (their cached rounds)."""
-    from stages import correct
-    off = {"correct": {"max_move_um": 450.0, "keep_surface_deg": None}, "tool": {"diameter_mm": 10.0}}
-    assert correct.used_params(off) == {"correct": {"max_move_um": 450.0}, "tool": {"diameter_mm": 10.0}}
-    assert off["correct"]["keep_surface_deg"] is None                 # the caller's dict is left alone
-    on = {"correct": {"max_move_um": 450.0, "keep_surface_deg": 10.0}, "tool": {"diameter_mm": 10.0}}
-    assert correct.used_params(on) == on
-
-
-def test_pass_predicted_on_another_surface_keeps_its_round_one_error():
-    """Round 2 predicts one pass with its normal turned 66° (the moved ball touches another
-    surface first) and an error of the other sign: with correct.keep_surface_deg (10°) its vertices
-    move as if that pass had kept its round-1 error and normal; without it they follow the other
-    surface."""
-    from stages.correct import run
-    data, blocks, passes = _load(SAMPLES[1])
-    passes = passes.sort_by("pass_id")
-    n = passes.num_rows
-    normals = np.tile([0.6, 0.0, 0.8], (n, 1))
-    first = _errors(passes, np.full(n, -50.0), normals)
-    r1 = run({"blocks": blocks, "passes": passes, "errors": first}, {"correct": {}})["corrected"]
-    bno, bend = passes.column("block_no").to_numpy(), passes.column("block_end").to_numpy()
-    motion = dict(zip(blocks.column("block_no").to_pylist(), blocks.column("motion").to_pylist()))
-    single = (bno == bend) & np.array([motion[b] == 1 for b in bno])
-    single &= np.concatenate([[False], np.diff(bno) == 1]) & np.concatenate([np.diff(bno) == 1, [False]])
-    other = int(np.flatnonzero(single[1:-1] & single[:-2] & single[2:])[len(single) // 4] + 1)
-    n2 = normals.copy()
-    n2[other] = [0.0, -np.sin(np.radians(60.0)), np.cos(np.radians(60.0))]   # 66.4° from (0.6, 0, 0.8)
-    e2 = np.full(n, -60.0)
-    e2[other] = 120.0
-    want_e = e2.copy()
-    want_e[other] = -50.0
-    ins = {"blocks": blocks, "passes": passes, "corrected": r1, "round_passes": passes, "first_errors": first}
-    kept = {"correct": {"relax": 1.0, "max_move_um": 500.0, "keep_surface_deg": 10.0}}
-    plain = {"correct": {"relax": 1.0, "max_move_um": 500.0}}
-    got = run({**ins, "errors": _errors(passes, e2, n2)}, kept)["corrected"]
-    want = run({**ins, "errors": _errors(passes, want_e, normals)}, plain)["corrected"]
-    without = run({**ins, "errors": _errors(passes, e2, n2)}, plain)["corrected"]
-    for c in ("x_new_mm", "y_new_mm", "z_new_mm", "move_um"):
-        np.testing.assert_allclose(got.column(c).to_numpy(), want.column(c).to_numpy(), rtol=0, atol=1e-12)
-    # the pass's two vertices: 55 µm out along (0.6, 0, 0.8) (para 0084 on −50 and −60 µm along one
-    # normal), no y; without the rule they step along the other surface's normal
-    at = np.isin(got.column("block_no").to_numpy(), [bno[other] - 1, bno[other]])
-    assert at.sum() == 2
-    np.testing.assert_allclose(got.column("move_um").to_numpy()[at], 55.0, rtol=1e-9)
-    assert np.all(np.abs(got.column("y_new_mm").to_numpy()[at] - got.column("y_mm").to_numpy()[at]) < 1e-12)
-    dy = without.column("y_new_mm").to_numpy()[at] - without.column("y_mm").to_numpy()[at]
-    assert np.all(np.abs(dy) > 0.02)
-
-
-def _linear_rounds(relax: float, e0: float, k: float, rounds: int, accelerate: bool = False):
+def _linear_rounds(relax: float, e0: float, k: float, rounds: int):
     """Rounds of ``correct.run`` on a synthetic prediction whose error grows with the move:
     e(s) = e0 + k·s, s = how far the pass has moved into the material (µm along −n). The surface
     then deviates from the original by e(s) − s; its fixed point is s* = e0 / (1 − k)."""
@@ -1157,7 +963,7 @@ def _linear_rounds(relax: float, e0: float, k: float, rounds: int, accelerate: b
     n = passes.num_rows
     normal = np.array([0.6, 0.0, 0.8])
     normals = np.tile(normal, (n, 1))
-    params = {"correct": {"relax": relax, "max_move_um": 1e4, "accelerate": accelerate}}
+    params = {"correct": {"relax": relax, "max_move_um": 1e4}}
     cor = run({"blocks": blocks, "passes": passes, "errors": _errors(passes, np.full(n, e0), normals)},
               params)["corrected"]
     dev = []
@@ -1189,72 +995,6 @@ def test_rounds_take_half_steps_where_they_do_not_contract():
     # relax caps the step: 0.5 from round 2 on, factor 1 − 0.5·(1 − k) = 0.6
     capped = _linear_rounds(0.5, 10.0, 0.2, 4)
     np.testing.assert_allclose(capped[1:] / capped[:-1], 0.6, rtol=1e-6)
-
-
-def test_accelerated_rounds_reach_the_fixed_point_of_a_linear_error_in_one_round():
-    """With ``correct.accelerate`` round 2 takes the secant step 1/(1 − k) of what the new
-    prediction asks: for an error linear in the move (e = e0 + k·s, fixed point s* = e0/(1 − k))
-    the deviation from the original surface is 0 after round 2 whatever k (a heavy cut whose
-    deflection grows as the path moves into the wall, 0 < k < 1; an error that falls, k < 0),
-    where the plain fixed point leaves k^r. Beyond the cap (k = 0.9: 1/(1 − k) = 10 > 4) the step
-    is 4×, the deviation falls by 1 − 4(1 − k) = 0.6 a round; where the residual does not fall
-    along the move (k > 1) the halving rule keeps it bounded. References: the linear map's
-    closed forms, not the code."""
-    for k in (-1.5, -0.5, 0.2, 0.45, 0.7):
-        dev = _linear_rounds(1.0, 10.0, k, 3, accelerate=True)
-        plain = _linear_rounds(1.0, 10.0, k, 3) if 0 < k < 1 else None
-        assert dev[0] == pytest.approx(10.0 * k, rel=1e-9)      # round 1 is the plain move
-        assert np.all(np.abs(dev[1:]) < 1e-6), (k, dev)
-        if plain is not None:
-            np.testing.assert_allclose(plain, 10.0 * k ** np.arange(1, 4), rtol=1e-6)
-    capped = _linear_rounds(1.0, 10.0, 0.9, 4, accelerate=True)
-    np.testing.assert_allclose(capped[1:] / capped[:-1], 0.6, rtol=1e-6)
-    runaway = _linear_rounds(1.0, 10.0, 1.2, 6, accelerate=True)
-    assert np.all(np.abs(runaway) < 10.0 * 1.2 * 1.5)
-
-
-def test_accelerated_rounds_fall_back_where_the_step_turned_away_from_the_last():
-    """The secant is a model of the residual along the last move. Round 1 moves every vertex by
-    10 µm along its pass normal n1; round 2's prediction on the moved path asks 14 µm along n2.
-    With n2 = n1 the residual fell from 10 to 4 over the 10 µm moved (σ = −0.6): the secant step
-    is 4 / 0.6, the vertex goes to 16.67 µm where the plain round goes to 14; n2 turned 3° off
-    n1 (the step 14·n2 − 10·n1 turned 11° off the last) is still on that line. Turned 60° (a ball
-    whose generating point moved off a slope onto the wall beside it) the step has turned 104°:
-    the accelerated round is the plain one (its halving rule: |step| 12.5 > 10, half a step).
-    References: the secant's and the halving rule's closed forms over the two rounds' vectors."""
-    from stages.correct import run
-    data, blocks, passes = _load(SAMPLES[0])
-    passes = passes.sort_by("pass_id")
-    n = passes.num_rows
-    n1 = np.array([0.6, 0.0, 0.8])
-
-    def rounds(n2, accelerate):
-        params = {"correct": {"max_move_um": 1e4, "accelerate": accelerate}}
-        cor = run({"blocks": blocks, "passes": passes,
-                   "errors": _errors(passes, np.full(n, 10.0), np.tile(n1, (n, 1)))}, params)["corrected"]
-        cor2 = run({"blocks": blocks, "passes": passes, "corrected": cor, "round_passes": passes,
-                    "errors": _errors(passes, np.full(n, 14.0), np.tile(n2, (n, 1)))}, params)["corrected"]
-        return [np.stack([c.column(f"{a}_new_mm").to_numpy() - c.column(f"{a}_mm").to_numpy()
-                          for a in "xyz"], 1) * 1e3 for c in (cor, cor2)]
-
-    for turn_deg, accelerated in ((0.0, True), (3.0, True), (60.0, False)):
-        t = np.radians(turn_deg)
-        n2 = np.array([0.6 * np.cos(t), np.sin(t), 0.8 * np.cos(t)])
-        m1, fast = rounds(n2, True)
-        _, plain = rounds(n2, False)
-        sign = np.sign(m1 @ n1)                     # the move's sense along the normal (one for all)
-        assert np.all(sign == sign[0]) and np.allclose(m1, sign[:, None] * 10.0 * n1, atol=1e-9)
-        r1, r2 = 10.0 * n1, 14.0 * n2 - 10.0 * n1   # the two rounds' steps, in units of sign
-        if accelerated:
-            mu = -1.0 / ((r2 - r1) @ r1 / (r1 @ r1))
-            want, want_plain = r1 + mu * r2, r1 + r2
-        else:
-            want = want_plain = r1 + 0.5 * r2
-        np.testing.assert_allclose(fast, sign[:, None] * want, atol=1e-9)
-        np.testing.assert_allclose(plain, sign[:, None] * want_plain, atol=1e-9)
-        if turn_deg == 0.0:                         # along the line: 10 + 4 / 0.6 against 10 + 4
-            assert np.linalg.norm(want) == pytest.approx(10.0 + 4.0 / 0.6, rel=1e-12)
-            assert np.linalg.norm(want_plain) == pytest.approx(14.0, rel=1e-12)
 
 
 def _ball_clearance(points, tip, radius):
@@ -1311,7 +1051,7 @@ def test_stage_limits_the_corner_vertex_by_the_wall_pass_generating_point():
                        b"G1 Z0. F500", b"X4.9", b"Y2.", b"Z6.", b"G0 Z50.", b"M30", b"%", b""])
     blocks, _ = parse_program(text, "corner.nc", "p")
     passes = split_blocks(blocks, SPLIT)
-    y1, z1 = passes.column("y1_mm").to_numpy(), passes.column("z1_mm").to_numpy()
+    z1 = passes.column("z1_mm").to_numpy()
     x1 = passes.column("x1_mm").to_numpy()
     x0 = passes.column("x0_mm").to_numpy()
     floor = np.flatnonzero((x0 == 0.0) & (x1 == 4.9) & (z1 == 0.0))[0]
@@ -1333,95 +1073,6 @@ def test_stage_limits_the_corner_vertex_by_the_wall_pass_generating_point():
                 - [4.9, 0.0, 0.0]) * 1000.0
         assert move == pytest.approx([expect, 0.0, 0.0], abs=0.01)
         assert out.column("gouge_limit_um")[row].as_py() == pytest.approx(400.0 if limit else 0.0, abs=0.01)
-
-
-def test_refinement_across_a_straight_path_does_not_slide_the_vertex_sideways():
-    """The sample's pocket x wall climbed in one line (window x 74–82, y 47–51, round 2): two
-    passes of the line with errors 303.2 and 126.3 µm and normals 1.6° apart, almost all of it
-    along the path (nz 0.049 against 0.022) and 0.1° across it (ny 0 against −0.002). Across the
-    path the normals are one normal, so the move is the para 0084 move: along −e·n (closed form
-    below), nothing sideways, with ``correct.refine_across_path`` (off by default: the whole sample
-    program did worse after three rounds); the refinement solved first and projected afterwards
-    (the default) slides the vertex 128 µm along the wall."""
-    na = np.array([[-0.999, 0.000, 0.049]])
-    nb = np.array([[-1.0, -0.002, 0.022]])
-    na, nb = na / np.linalg.norm(na), nb / np.linalg.norm(nb)
-    t = np.array([[0.141, 0.0, 4.02]]) / np.hypot(0.141, 4.02)
-    ea, eb = 303.168, 126.295
-    ok = np.ones(1, bool)
-    m = vertex_moves(np.array([ea]), na, ok, np.array([eb]), nb, ok, along_path=t, across_path=True)[0]
-    d = -(ea * na[0] + eb * nb[0])
-    d /= np.linalg.norm(d)
-    ca, cb = d @ na[0], d @ nb[0]
-    para_0084 = -(ea * ca + eb * cb) / (ca ** 2 + cb ** 2) * d
-    assert abs(m[1]) < 1.0
-    np.testing.assert_allclose(m, para_0084, atol=1.0)
-    projected = vertex_moves(np.array([ea]), na, ok, np.array([eb]), nb, ok, along_path=t, across_path=False)[0]
-    assert projected[1] < -100.0
-
-
-def test_contact_lines_carry_the_generating_point_along_its_pass():
-    """A bull-nose tool (R 5, rc 2) touching at contact angle q and rotation φ: the contact point is
-    the tip plus ``ToolShape.point(q, φ)`` and the surface normal is minus the tool's outward normal
-    there, (−sin q cos φ, −sin q sin φ, cos q). With the prediction point 30 % along a 1 mm pass
-    the line runs from A + point to B + point, 0.2 mm apart at most (6 points); the generating
-    point itself comes first."""
-    from stages.geometry import ToolShape
-    bull = ToolShape("bull", 5.0, 2.0, 40.0)
-    rng = np.random.default_rng(4)
-    q, phi = rng.uniform(5, 85, 3), rng.uniform(0, 360, 3)
-    c = bull.point(q, phi)
-    qr, pr = np.radians(q), np.radians(phi)
-    n = np.stack([-np.sin(qr) * np.cos(pr), -np.sin(qr) * np.sin(pr), np.cos(qr)], 1)
-    a = rng.uniform(-10, 10, (3, 3))
-    direction = rng.normal(size=(3, 3))
-    b = a + direction / np.linalg.norm(direction, axis=1)[:, None]      # 1 mm passes
-    gen = a + 0.3 * (b - a) + c
-    pts, nrm, idx = contact_lines(gen, n, np.arange(3), a, b, bull, spacing_mm=0.2)
-    np.testing.assert_allclose(pts[:3], gen)
-    for k in range(3):
-        line = pts[3:][idx[3:] == k]
-        assert len(line) == 6
-        np.testing.assert_allclose(line[0], a[k] + c[k], atol=1e-9)
-        np.testing.assert_allclose(line[-1], b[k] + c[k], atol=1e-9)
-        np.testing.assert_allclose(np.diff(line, axis=0), np.tile((b[k] - a[k]) / 5, (5, 1)), atol=1e-9)
-        np.testing.assert_allclose(nrm[3:][idx[3:] == k], np.tile(n[k], (6, 1)))
-
-
-def test_stage_limits_the_corner_vertex_by_the_wall_line_beside_it():
-    """The corner of the test above, with the wall finished by a row along its foot instead: tips
-    at x 5.0 from y −8 to 8 (four 4 mm passes, their generating points on the wall x 10 at their
-    middles, y ±2 and ±6, z 5). No generating point is within reach of the vertex's tool (the
-    nearest 0.48 mm off, more than the 300 µm move limit), but the wall's foot passes 0.1 mm beside
-    it: along the wall passes' contact lines (``correct.gouge_lines``) the vertex moves the 100 µm
-    clearance, with the points alone the 300 µm move limit."""
-    from stages import correct
-    text = b"\n".join([b"%", b"O0001", b"G90 G17 G21", b"T1 M6", b"S8000 M3", b"G0 X0. Y0. Z10.",
-                       b"G1 Z0. F500", b"X4.9", b"Y2.", b"G0 Z50.", b"X5. Y-8.", b"Z2.", b"G1 Z0. F500",
-                       b"Y8.", b"G0 Z50.", b"M30", b"%", b""])
-    blocks, _ = parse_program(text, "corner.nc", "p")
-    passes = split_blocks(blocks, SPLIT)
-    col = lambda c: passes.column(c).to_numpy()  # noqa: E731
-    floor = np.flatnonzero((col("x0_mm") == 0.0) & (col("x1_mm") == 4.9) & (col("z1_mm") == 0.0))[0]
-    wall = np.flatnonzero((col("x0_mm") == 5.0) & (col("y0_mm") != col("y1_mm")))
-    assert len(wall) == 4
-    normals = np.tile([0.0, 0.0, 1.0], (passes.num_rows, 1))
-    err = np.zeros(passes.num_rows)
-    normals[floor + 1], err[floor + 1] = [0.6, 0.0, 0.8], -300.0
-    mid_y = (col("y0_mm")[wall] + col("y1_mm")[wall]) / 2
-    generating = pa.table({"program_id": ["p"] * 4, "pass_id": passes.column("pass_id").take(wall),
-                           "gen_x_mm": np.full(4, 10.0), "gen_y_mm": mid_y, "gen_z_mm": np.full(4, 5.0),
-                           "nx": np.full(4, -1.0), "ny": np.zeros(4), "nz": np.zeros(4)})
-    errors = _errors(passes, err, normals).filter(pa.array(np.isin(np.arange(passes.num_rows), [floor, floor + 1])))
-    inputs = {"blocks": blocks, "passes": passes, "errors": errors, "generating": generating}
-    tool = {"type": "ball", "diameter_mm": 10.0, "stickout_mm": 40.0}
-    vertex = int(col("block_end")[floor])
-    for lines, expect in ((True, 100.0), (False, 300.0)):        # the points alone: the move limit
-        out = correct.run(inputs, {"correct": {"max_move_um": 300.0, "gouge_lines": lines}, "tool": tool})
-        row = int(np.flatnonzero(out["corrected"].column("block_no").to_numpy() == vertex)[0])
-        move = (np.array([out["corrected"].column(c)[row].as_py() for c in ("x_new_mm", "y_new_mm", "z_new_mm")])
-                - [4.9, 0.0, 0.0]) * 1000.0
-        assert move == pytest.approx([expect, 0.0, 0.0], abs=0.01)
 
 
 def test_normals_a_few_degrees_apart_do_not_slide_the_vertex_along_a_straight_path():
@@ -1683,33 +1334,6 @@ def test_via_points_cut_arcs_into_chords_that_follow_an_error_changing_along_the
 
 # ------------------------------------------------------------------------------------ corners
 
-def test_end_pieces_cut_long_lines_the_same_in_via_blocks_and_passes():
-    """``split.end_piece_mm``: a long line's first and last piece have that length, the middle is
-    cut into equal pieces (20 mm → 0.5 + 4 × 4.75 + 0.5; 15 mm → 0.5 + 3 × 4.667 + 0.5); the via
-    blocks cut the plain lines at the same points, so the passes do not change."""
-    split = {**SPLIT, "split": {**SPLIT["split"], "end_piece_mm": 0.5}}
-    blocks, _ = parse_program(_VIA_PROGRAM, "v", "p")
-    passes = split_blocks(blocks, split)
-    line = passes.column("line_no").to_numpy()
-    length = np.linalg.norm(_xyz_of(passes, 1) - _xyz_of(passes, 0), axis=1)
-    np.testing.assert_allclose(length[line == 8], [0.5, 4.75, 4.75, 4.75, 4.75, 0.5], atol=1e-12)
-    np.testing.assert_allclose(length[line == 10], [0.5, 14 / 3, 14 / 3, 14 / 3, 0.5], atol=1e-12)
-    # the M8 line is cut by the split stage alone, the same way (12 mm: 0.5 + 3 × 3.667 + 0.5)
-    np.testing.assert_allclose(length[line == 9], [0.5, 11 / 3, 11 / 3, 11 / 3, 0.5], atol=1e-12)
-    vb = via_blocks(_VIA_PROGRAM, blocks, 5.0, 0.5)
-    lines = vb.column("line_no").to_numpy()
-    assert [int((lines == k).sum()) for k in (8, 9, 10, 11)] == [6, 1, 5, 1]
-    again = split_blocks(vb, split)
-    assert again.num_rows == passes.num_rows
-    for c in ("x0_mm", "y0_mm", "z0_mm", "x1_mm", "y1_mm", "z1_mm", "motion", "line_no"):
-        assert np.allclose(passes.column(c).to_numpy(), again.column(c).to_numpy(), atol=1e-12), c
-    # an end piece is not merged with the short moves beside it
-    short = parse_program(b"G90 G21 G17\nS8000 M3\nG0 X0 Y0 Z0\nG1 X-0.2 F100\nX10\nX10.2\nM30\n", "s", "p")[0]
-    sp = split_blocks(short, split)
-    np.testing.assert_allclose(np.linalg.norm(_xyz_of(sp, 1) - _xyz_of(sp, 0), axis=1),
-                               [0.2, 0.5, 4.6, 4.6, 0.5, 0.2], atol=1e-12)
-
-
 _CORNER_PROGRAM = b"\n".join([
     b"%", b"O0013", b"G90 G21 G17", b"T1 M6", b"S8000 M3", b"G0 X0. Y0. Z5.",
     b"G1 Z0. F100",               # 5 mm plunge (a rapid before it is no corner): 4.5 + 0.5
@@ -1721,116 +1345,8 @@ _CORNER_PROGRAM = b"\n".join([
     b"G0 Z50.", b"M30", b"%", b""])
 
 
-def test_corner_pieces_cut_lines_at_path_corners_the_same_in_via_blocks_and_passes():
-    """``split.corner_piece_mm``: a G1 line gets a 0.5 mm piece at each end where the path turns by
-    more than 30° onto another G1 line (lengths by hand), if its rest is at least 0.5 mm; the via
-    blocks cut at the same points; with no error the corrected program is the source, byte for
-    byte, and moves that differ between a corner piece and its line's body are written as a via
-    line that reverse-checks."""
-    split = {**SPLIT, "split": {**SPLIT["split"], "corner_piece_mm": 0.5}}
-    blocks, _ = parse_program(_CORNER_PROGRAM, "c", "p")
-    passes = split_blocks(blocks, split)
-    line = passes.column("line_no").to_numpy()
-    length = np.linalg.norm(_xyz_of(passes, 1) - _xyz_of(passes, 0), axis=1)
-    expect = {7: [4.5, 0.5], 8: [0.5, 4.5, 4.5, 0.5], 9: [0.5, 4.5, 4.5, 0.5], 10: [np.sqrt(1.28)],
-              11: [0.5, 2.5], 12: [np.sqrt(10.0)]}
-    for k, v in expect.items():
-        np.testing.assert_allclose(length[line == k], v, atol=1e-12, err_msg=f"line {k}")
-    # without the option only the long lines are cut
-    assert split_blocks(blocks, SPLIT).num_rows == passes.num_rows - 6
-    vb = via_blocks(_CORNER_PROGRAM, blocks, 5.0, 0.0, 0.5)
-    assert [int((vb.column("line_no").to_numpy() == k).sum()) for k in expect] == [2, 4, 4, 1, 2, 1]
-    again = split_blocks(vb, split)
-    assert again.num_rows == passes.num_rows
-    for c in ("x0_mm", "y0_mm", "z0_mm", "x1_mm", "y1_mm", "z1_mm", "motion", "line_no"):
-        assert np.allclose(passes.column(c).to_numpy(), again.column(c).to_numpy(), atol=1e-12), c
-    cut = passes.column("motion").to_numpy() != 0
-    normal = np.tile([0, -1.0, 0], (passes.num_rows, 1))
-    none = correct_once(vb, again, _errors(again, np.zeros(again.num_rows), normal).slice(0, 0), {"correct": {}})
-    assert write_program(_CORNER_PROGRAM, vb, none) == _CORNER_PROGRAM
-    # the corner piece at the end of line 8 finished to the design by the next line's passages
-    # (error 0), the rest of the line 30 µm short: the vertex between them moves by the mean,
-    # 15 µm, the corner not at all, the line's start 30 µm; written as a via line
-    e = np.where(line == 8, 30.0, 0.0)
-    e[np.flatnonzero(line == 8)[-1]] = 0.0
-    err = _errors(again, e, normal).filter(pa.array(cut & (line == 8)))
-    c = correct_once(vb, again, err, {"correct": {}})
-    out = write_program(_CORNER_PROGRAM, vb, c)
-    assert b"G1 X9.500 Y0.015 Z0.000" in out
-    rep = reverse_check(out, vb, c)
-    assert rep["ok"], rep["message"]
-
-
 def _xyz_of(passes, end):
     return np.stack([passes.column(f"{a}{end}_mm").to_numpy() for a in "xyz"], 1)
-
-
-def test_corner_limit_is_the_nearest_move_that_does_not_cut_into_the_fan():
-    """Closed forms at a pocket corner (normals −x and −y: material beyond x and y): a move into
-    both walls is taken off entirely but for its part along the corner's axis, a move out of one
-    wall and into the other keeps the part out of the first, a move out of both stays; a vertex
-    whose normals are closer than 30° is no corner. Random corners against a brute-force
-    constrained least squares (scipy SLSQP): the nearest move m with m·n_a ≥ 0 and m·n_b ≥ 0."""
-    from scipy.optimize import minimize
-    na, nb = np.array([-1.0, 0, 0]), np.array([0, -1.0, 0])
-    moves = np.array([[88.0, 203.0, 7.0], [-50.0, 100.0, 0.0], [-30.0, -20.0, 5.0], [40.0, 40.0, 0.0]])
-    own = np.array([[na, nb], [na, nb], [na, nb], [na, na * np.cos(0.4) + [0, -np.sin(0.4), 0]]])
-    out, corner = corner_limit(moves, own)
-    assert corner.tolist() == [True, True, True, False]
-    np.testing.assert_allclose(out, [[0, 0, 7.0], [-50.0, 0, 0], [-30.0, -20.0, 5.0], [40.0, 40.0, 0]], atol=1e-9)
-    rng = np.random.default_rng(7)
-    for _ in range(40):
-        a, b = rng.normal(size=(2, 3))
-        a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
-        if a @ b > np.cos(np.radians(35.0)):
-            continue
-        m = rng.normal(0, 100, 3)
-        got, is_corner = corner_limit(m[None], np.array([[a, b]]))
-        ref = minimize(lambda x: np.sum((x - m) ** 2), np.zeros(3), method="SLSQP",
-                       constraints=[{"type": "ineq", "fun": lambda x, n=n: x @ n} for n in (a, b)],
-                       options={"ftol": 1e-12, "maxiter": 200}).x
-        assert is_corner[0]
-        np.testing.assert_allclose(got[0], ref, atol=1e-3)
-
-
-def test_pocket_corner_vertex_holds_and_the_via_points_beside_it_carry_the_walls():
-    """A pocket corner as on the sample mould (x 78, y 48): a line along +x finishes a wall with
-    its normal +y (+200 µm left), the next along +y a wall with its normal −x (+88 µm left). The
-    ball at the corner vertex finishes the fan of normals between them. Without
-    ``hold_corners`` the vertex realises both walls, (+88, −200) µm, which cuts the fan up to
-    218 µm deeper (where its normal is along the move); with it the vertex stays (no fan normal is cut deeper:
-    m·n ≥ 0 over the fan, sampled) and the via points 0.5 mm along each line (``end_piece_mm``)
-    take the walls' own moves, −e·n."""
-    text = b"\n".join([b"%", b"O0001", b"G90 G17 G21", b"T1 M6", b"S8000 M3", b"G0 X0. Y0. Z10.",
-                       b"G1 Z0. F500", b"X20.", b"Y20.", b"G0 Z50.", b"M30", b"%", b""])
-    split = {**SPLIT, "split": {**SPLIT["split"], "end_piece_mm": 0.5}}
-    blocks, _ = parse_program(text, "corner.nc", "p")
-    vb = via_blocks(text, blocks, 5.0, 0.5)
-    passes = split_blocks(vb, split)
-    p0, p1 = _xyz_of(passes, 0), _xyz_of(passes, 1)
-    along_x = (p1[:, 0] > p0[:, 0]) & (p0[:, 2] == 0) & (p1[:, 2] == 0)
-    along_y = p1[:, 1] > p0[:, 1]
-    normals = np.where(along_x[:, None], [0, 1.0, 0], np.where(along_y[:, None], [-1.0, 0, 0], [0, 0, 1.0]))
-    err = np.where(along_x, 200.0, np.where(along_y, 88.0, 0.0))
-    errors = _errors(passes, err, normals).filter(pa.array(along_x | along_y))
-
-    def moved(hold):
-        c = correct_once(vb, passes, errors, {"correct": {"max_move_um": 300.0, "hold_corners": hold}})
-        xyz = np.stack([c.column(k).to_numpy() for k in ("x_mm", "y_mm", "z_mm")], 1)
-        new = np.stack([c.column(k).to_numpy() for k in ("x_new_mm", "y_new_mm", "z_new_mm")], 1)
-        at = {tuple(np.round(p, 6)): (n - p) * 1000.0 for p, n in zip(xyz, new)}
-        return at[(20.0, 0.0, 0.0)], at[(19.5, 0.0, 0.0)], at[(20.0, 0.5, 0.0)]
-
-    corner, via_x, via_y = moved(False)
-    np.testing.assert_allclose(corner, [88.0, -200.0, 0], atol=1e-6)
-    t = np.linspace(0.0, np.pi / 2, 91)
-    fan = np.stack([-np.cos(t), np.sin(t), np.zeros_like(t)], 1)       # from −x to +y
-    assert (fan @ corner).min() == pytest.approx(-np.hypot(200.0, 88.0), rel=1e-3)   # the fan's normal along it
-    corner, via_x, via_y = moved(True)
-    assert (fan @ corner).min() >= -1e-6
-    np.testing.assert_allclose(corner, 0.0, atol=1e-6)
-    np.testing.assert_allclose(via_x, [0, -200.0, 0], atol=1e-6)
-    np.testing.assert_allclose(via_y, [88.0, 0, 0], atol=1e-6)
 
 
 def test_corner_via_points_keep_the_passes_and_carry_each_line_s_own_move_beside_the_corner():
@@ -1930,201 +1446,3 @@ def test_a_corner_via_point_moved_off_its_pass_splits_the_corrected_program_ther
             nb.loc[at, f"y{e}_mm"] = off_mm
         assert split_blocks(pa.Table.from_pandas(nb, schema=vb.schema), SPLIT).num_rows == passes.num_rows
 
-
-def test_corner_fans_are_the_ball_points_of_the_normals_between():
-    """The fan of a floor-wall corner (normals +z and −x) for a Ø10 ball with its tip at (1, 2, 3):
-    the point of normal n is the centre − 5 n (closed form), 9 steps of 10° from the floor's end
-    to the wall's; no fan where the normals are one."""
-    from stages.geometry import ToolShape
-    ball = ToolShape("ball", 5.0, 5.0, 40.0)
-    own = np.array([[[0, 0, 1.0], [-1.0, 0, 0]], [[0, 0, 1.0], [0, 0, 1.0]]])
-    pts, nrm, which = corner_fans(np.array([[1.0, 2, 3], [0, 0, 0]]), own, np.array([True, False]), ball)
-    t = np.radians(np.linspace(0.0, 90.0, 10))
-    np.testing.assert_allclose(nrm, np.stack([-np.sin(t), 0 * t, np.cos(t)], 1), atol=1e-12)
-    np.testing.assert_allclose(pts, np.array([1.0, 2, 8]) - 5.0 * nrm, atol=1e-9)
-    assert which.tolist() == [0] * 10
-
-
-def test_the_fan_of_a_wall_foot_limits_the_slope_vertex_beside_it():
-    """The sample's pocket wall foot (x 78, y 36.6): a slope pass (overcut 300 µm along its normal
-    20° from +z towards +x) ends 0.15 mm before the corner where a floor pass meets a wall climb
-    (wall at x 7.15, normals +z and −x). Its vertex is asked to move 300 µm along +x; the ball
-    there is 0.15 mm from the wall's foot, the fillet the ball standing at the corner finishes
-    (the arc of radius 5 about (2.15, 0, 5), written out here). The wall's generating point, 2 mm up
-    its 2° draft, lets the vertex move 0.22 mm towards the wall, into the foot; with
-    ``hold_corners`` the gouge limit guards that fan and the moved ball stays off the arc (brute
-    force)."""
-    from stages.geometry import ToolShape
-    ball = ToolShape("ball", 5.0, 5.0, 40.0)
-    text = b"\n".join([b"%", b"O0001", b"G90 G17 G21", b"T1 M6", b"S8000 M3", b"G0 X-2. Y0. Z10.",
-                       b"G1 Z0.728 F500", b"X2. Z0.", b"X2.15", b"X2.29 Z4.", b"G0 Z50.", b"M30", b"%", b""])
-    blocks, _ = parse_program(text, "foot.nc", "p")
-    passes = split_blocks(blocks, SPLIT)
-    p0, p1 = _xyz_of(passes, 0), _xyz_of(passes, 1)
-    slope = (p0[:, 0] == -2.0) & (p1[:, 0] == 2.0)
-    floor = (p0[:, 0] == 2.0) & (p1[:, 0] == 2.15)
-    wall = (p1[:, 2] == 4.0) & (p0[:, 2] == 0.0)          # climbed with a 2° draft, as on the sample
-    s20 = np.radians(20.0)
-    normals = np.zeros((passes.num_rows, 3))
-    normals[slope], normals[floor], normals[wall] = [np.sin(s20), 0, np.cos(s20)], [0, 0, 1.0], [-1.0, 0, 0]
-    err = np.where(slope, -300.0, 0.0)
-    keep = slope | floor | wall
-    errors = _errors(passes, err, normals).filter(pa.array(keep))
-    generating = pa.table({"program_id": ["p"], "pass_id": passes.column("pass_id").filter(pa.array(wall)),
-                           "gen_x_mm": [7.22], "gen_y_mm": [0.0], "gen_z_mm": [7.0],
-                           "nx": [-1.0], "ny": [0.0], "nz": [0.0]})
-    t = np.radians(np.linspace(0.0, 90.0, 181))
-    arc = np.stack([2.15 + 5 * np.sin(t), 0 * t, 5 - 5 * np.cos(t)], 1)     # the corner's fillet
-
-    def slope_end(hold):
-        c = correct_once(blocks, passes, errors, {"correct": {"max_move_um": 300.0, "hold_corners": hold}},
-                         generating=generating, tool_shape=ball)
-        xyz = np.stack([c.column(k).to_numpy() for k in ("x_mm", "y_mm", "z_mm")], 1)
-        new = np.stack([c.column(k).to_numpy() for k in ("x_new_mm", "y_new_mm", "z_new_mm")], 1)
-        return new[np.flatnonzero(np.all(np.abs(xyz - [2.0, 0, 0]) < 1e-9, axis=1))[0]]
-
-    assert _ball_clearance(arc, slope_end(False), 5.0).min() < -0.06     # 70 µm into the foot
-    tip = slope_end(True)
-    assert _ball_clearance(arc, tip, 5.0).min() >= -0.003
-    assert tip[0] - 2.0 > 0.1                     # it still moves towards the wall, as far as it may
-
-
-def test_guarded_fans_keep_the_slope_vertex_off_a_wall_foot_climbed_in_two_corners():
-    """The sample's wall foot as the program cuts it (x 73, y 36.6): a slope pass (overcut 300 µm,
-    normal 20° from +z towards +x) ends 0.15 mm before the wall; a floor piece, a 0.5 mm climb
-    rounding the foot (normal 45°, +56.6 µm: the corner vertex asked to move 80 µm into the wall)
-    and the wall (2° draft) follow. Both ends of the climb are corners (normals 45° apart). With
-    ``guard_fans`` the gouge limit guards the fans the ball finishes standing at the corners, so
-    the slope vertex stays off the foot (the arcs of radius 5 about both corners, brute force)
-    while it still moves towards the wall (and up); the corners themselves move as without the
-    option (the lower one the foot's own error, closed form), although the lower corner's move
-    reaches 62.5 µm into the upper corner's fan (the shank's side at the wall's foot): its own
-    move is what cuts it. ``hold_corners`` would hold them."""
-    from stages.geometry import ToolShape
-    ball = ToolShape("ball", 5.0, 5.0, 40.0)
-    text = b"\n".join([b"%", b"O0001", b"G90 G17 G21", b"T1 M6", b"S8000 M3", b"G0 X-2. Y0. Z10.",
-                       b"G1 Z0.728 F500", b"X2. Z0.", b"X2.15", b"X2.1675 Z0.5", b"X2.29 Z4.", b"G0 Z50.",
-                       b"M30", b"%", b""])
-    blocks, _ = parse_program(text, "foot2.nc", "p")
-    passes = split_blocks(blocks, SPLIT)
-    p0, p1 = _xyz_of(passes, 0), _xyz_of(passes, 1)
-    slope = (p0[:, 0] == -2.0) & (p1[:, 0] == 2.0)
-    floor = (p0[:, 0] == 2.0) & (p1[:, 0] == 2.15)
-    climb = (p0[:, 0] == 2.15) & (p1[:, 2] == 0.5)
-    wall = (p1[:, 2] == 4.0) & (p0[:, 2] == 0.5)
-    s20, c45 = np.radians(20.0), np.sqrt(0.5)
-    normals = np.zeros((passes.num_rows, 3))
-    normals[slope], normals[floor] = [np.sin(s20), 0, np.cos(s20)], [0, 0, 1.0]
-    normals[climb], normals[wall] = [-c45, 0, c45], [-1.0, 0, 0]
-    err = np.where(slope, -300.0, np.where(climb, 80.0 * c45, 0.0))
-    keep = slope | floor | climb | wall
-    assert keep.sum() == 4
-    errors = _errors(passes, err, normals).filter(pa.array(keep))
-    generating = pa.table({"program_id": ["p"], "pass_id": passes.column("pass_id").filter(pa.array(wall)),
-                           "gen_x_mm": [7.23], "gen_y_mm": [0.0], "gen_z_mm": [7.25],
-                           "nx": [-1.0], "ny": [0.0], "nz": [0.0]})
-    # the foot: the ball standing at each corner, for the normals between its two passes
-    t = np.radians(np.linspace(0.0, 45.0, 91))
-    foot = np.vstack([np.stack([2.15 + 5 * np.sin(t), 0 * t, 5 - 5 * np.cos(t)], 1),
-                      np.stack([2.1675 + 5 * np.sin(t + np.pi / 4), 0 * t, 5.5 - 5 * np.cos(t + np.pi / 4)], 1)])
-    # what the program leaves of it: not inside the ball at the other corner or at the slope's end
-    foot = foot[np.min([_ball_clearance(foot, tip, 5.0) for tip in ([2.15, 0, 0], [2.1675, 0, 0.5], [2.0, 0, 0])],
-                       axis=0) > -1e-9]
-
-    def ends(**options):
-        c = correct_once(blocks, passes, errors, {"correct": {"max_move_um": 300.0, **options}},
-                         generating=generating, tool_shape=ball)
-        xyz = np.stack([c.column(k).to_numpy() for k in ("x_mm", "y_mm", "z_mm")], 1)
-        new = np.stack([c.column(k).to_numpy() for k in ("x_new_mm", "y_new_mm", "z_new_mm")], 1)
-        at = lambda p: new[np.flatnonzero(np.all(np.abs(xyz - p) < 1e-9, axis=1))[0]]  # noqa: E731
-        return at([2.0, 0, 0]), at([2.15, 0, 0]), at([2.1675, 0, 0.5])
-
-    slope_end, low, high = ends()
-    assert _ball_clearance(foot, slope_end, 5.0).min() < -0.06                 # into the foot
-    np.testing.assert_allclose((low - [2.15, 0, 0]) * 1000, [80.0, 0, 0], atol=1e-3)
-    slope_g, low_g, high_g = ends(guard_fans=True)
-    assert _ball_clearance(foot, slope_g, 5.0).min() >= -0.003
-    assert slope_g[0] - 2.0 > 0.05 and slope_g[2] > 0.1            # towards the wall as far as it may, and up
-    np.testing.assert_allclose(low_g, low, atol=1e-12)
-    np.testing.assert_allclose(high_g, high, atol=1e-12)
-    # the lower corner's move reaches into the upper corner's fan (the wall's foot at q 90°)
-    assert -0.060 > _ball_clearance(np.array([[7.1675, 0, 5.5]]), low_g, 5.0)[0] > -0.065
-    _, low_h, _ = ends(hold_corners=True)
-    assert np.dot(low_h - [2.15, 0, 0], [-c45, 0, c45]) * 1000 > -1e-3     # held: not into the climb
-
-
-def test_pass_end_moves_fitted_to_probe_points_are_the_moves_that_made_their_errors(monkeypatch):
-    """``bench/closed_loop_vm_samples.py --fit-points``: errors made by a known piecewise-linear
-    move of a floor row (e = −m(x)·n at points along it) are fitted back to that move at every
-    node, and ``correct_once(node_moves=…)`` moves the program's vertices by it."""
-    from pathlib import Path
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "bench"))
-    from closed_loop_vm_samples import node_moves_from_points
-    lines = [b"%", b"O0011", b"G90 G17 G21", b"T1 M6", b"S1000 M3", b"G0 X0.000 Y0.000 Z1.000", b"G1 Z0.000 F100"]
-    lines += [b"X%.3f" % (1.0 * (i + 1)) for i in range(10)] + [b"G0 Z10.000", b"M30", b"%", b""]
-    text = b"\n".join(lines)
-    blocks, _ = parse_program(text, "t", "p")
-    passes = split_blocks(blocks, {**SPLIT, "split": {**SPLIT["split"], "merge_max_mm": 0.0}}).sort_by("pass_id")
-    x0, x1 = passes.column("x0_mm").to_numpy(), passes.column("x1_mm").to_numpy()
-    z0, z1 = passes.column("z0_mm").to_numpy(), passes.column("z1_mm").to_numpy()
-    row = np.flatnonzero((z0 == 0) & (z1 == 0) & (x1 > x0))           # the ten 1 mm floor passes
-    assert row.size == 10
-    node_z = 20.0 * np.sin(np.linspace(0.0, 3.0, 11))                   # µm, at x = 0 … 10
-    x = np.linspace(0.05, 9.95, 100)                                    # probe points on the floor
-    k = np.minimum((x // 1.0).astype(int), 9)
-    t = x - k
-    err = -((1 - t) * node_z[k] + t * node_z[k + 1])                    # e + m·n = 0, n = +z
-    pts = np.stack([x, np.zeros_like(x), np.zeros_like(x)], 1)
-    nrm = np.tile([0.0, 0.0, 1.0], (x.size, 1))
-    pid = passes.column("pass_id").to_numpy()[row][k]
-    moves, residual = node_moves_from_points(passes, pid, pts, nrm, err, 5.0, 1e-4)
-    assert np.sqrt(np.mean(residual ** 2)) < 1e-3
-    np.testing.assert_allclose(moves[row[0]:row[-1] + 2, 2], node_z, atol=1e-3)
-    assert np.abs(moves[:, :2]).max() < 1e-6                           # nothing asks for x or y
-    errors = _errors(passes.take(row), np.zeros(row.size), np.tile([0.0, 0.0, 1.0], (row.size, 1)))
-    c = correct_once(blocks, passes, errors, {"correct": {"max_move_um": 100.0}}, node_moves=moves)
-    xs = c.column("x_mm").to_numpy()
-    on_row = (c.column("z_mm").to_numpy() == 0) & (c.column("block_no").to_numpy() > 6)
-    dz = (c.column("z_new_mm").to_numpy() - c.column("z_mm").to_numpy()) * 1000
-    np.testing.assert_allclose(dz[on_row], np.interp(xs[on_row], np.arange(11.0), node_z), atol=1e-3)
-    with pytest.raises(InputError, match="node_moves"):
-        correct_once(blocks, passes, errors, {"correct": {}}, node_moves=moves[:-1])
-
-
-def test_measured_secant_rounds_cancel_a_wall_whose_error_grows_with_the_move_in_two_rounds(monkeypatch):
-    """``bench/closed_loop_vm_samples.py --secant``: a machine whose residual on a path moved in by
-    d is r = e0 − g·d (the heavy wall: moving in adds material, the deflection grows; g = 0.45)
-    is cancelled after two rounds, d = e0 / g (the secant of the fixed point is exact on a linear
-    error), where accumulated residuals leave e0·(1 − g)² (d = e0·(2 − g))."""
-    from pathlib import Path
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "bench"))
-    from closed_loop_vm_samples import errors_of_path, measured_round
-    lines = [b"%", b"O0012", b"G90 G17 G21", b"T1 M6", b"S1000 M3", b"G0 X0.000 Y0.000 Z1.000", b"G1 Z0.000 F100"]
-    lines += [b"X%.3f" % (1.0 * (i + 1)) for i in range(10)] + [b"G0 Z10.000", b"M30", b"%", b""]
-    blocks, _ = parse_program(b"\n".join(lines), "t", "p")
-    passes = split_blocks(blocks, {**SPLIT, "split": {**SPLIT["split"], "merge_max_mm": 0.0}}).sort_by("pass_id")
-    z0, z1 = passes.column("z0_mm").to_numpy(), passes.column("z1_mm").to_numpy()
-    x0, x1 = passes.column("x0_mm").to_numpy(), passes.column("x1_mm").to_numpy()
-    row = np.flatnonzero((z0 == 0) & (z1 == 0) & (x1 > x0))
-    assert row.size == 10
-    row_passes = passes.take(row)
-    e0, g = 40.0, 0.45
-    params = {"correct": {"max_move_um": 450.0}}
-    on_row = lambda c: (c.column("z_mm").to_numpy() == 0) & (c.column("block_no").to_numpy() > 6)  # noqa: E731
-    depth = lambda c: -(c.column("z_new_mm").to_numpy() - c.column("z_mm").to_numpy())[on_row(c)] * 1000  # noqa: E731
-
-    def residuals(c):                       # the machine: every row vertex moved in by the same d
-        d = 0.0 if c is None else float(np.mean(depth(c)))
-        return _errors(row_passes, np.full(10, e0 - g * d), np.tile([0.0, 0.0, 1.0], (10, 1)))
-
-    # a row moved in by 30 µm that still leaves 12 µm: the error of that path is 42 µm
-    moved = measured_round(blocks, passes, _errors(row_passes, np.full(10, 30.0), np.tile([0.0, 0.0, 1.0], (10, 1))),
-                           None, params, True)
-    e_path = errors_of_path(_errors(row_passes, np.full(10, 12.0), np.tile([0.0, 0.0, 1.0], (10, 1))), passes, moved)
-    np.testing.assert_allclose(e_path.column("err_um").to_numpy(), 42.0, atol=1e-6)
-
-    for secant, after_two in ((True, e0 / g), (False, e0 * (2 - g))):
-        c = None
-        for _ in range(2):
-            c = measured_round(blocks, passes, residuals(c), c, params, secant)
-        np.testing.assert_allclose(depth(c), after_two, atol=1e-3)

@@ -494,9 +494,8 @@ def _wall_program(offset_um):
     return split_blocks(blocks, split)
 
 
-@pytest.mark.parametrize("pass_ends", [True, False])
 @pytest.mark.parametrize("offset_um", [0.0, 3.0, 8.0])
-def test_predicted_error_is_the_deepest_tooth_passage_of_the_neighbouring_passes(offset_um, pass_ends, monkeypatch):
+def test_predicted_error_is_the_deepest_tooth_passage_of_the_neighbouring_passes(offset_um):
     """Deflection pushes A, B, C away from the wall by a constant 10, 30, 5 µm. A point swept by
     the tooth passages of neighbouring passes (within 1.5 revolutions = 0.15 mm of feed along the
     path) is left by the deepest of them: its own pass's error or a neighbour's error plus the
@@ -506,15 +505,11 @@ def test_predicted_error_is_the_deepest_tooth_passage_of_the_neighbouring_passes
     a subset of the points, every error and stand-off term follows; the deflection part is the
     winning passage's error without its stand-off (the stand-off does not scale with the forces).
 
-    Every neighbour here reaches the points only from one of its ends (the path is straight): with
-    ``PASS_END_PASSAGES`` off (the default: the deflection cannot change at a vertex) every point
-    keeps its own pass's error."""
-    import stages.gap as gap_mod
+    Every neighbour here reaches the points only from one of its ends (the path is straight): the
+    deflection cannot change at a vertex, so every point keeps its own pass's error."""
     from stages.gap import associate, predicted_at_points
-    monkeypatch.setattr(gap_mod, "PASS_END_PASSAGES", pass_ends)
     R10 = 5.0
     off = offset_um * 1e-3
-    standoff = lambda dx, o=0.0: (math.hypot(dx, R10 + o) - R10) * 1e3  # noqa: E731
     passes = _wall_program(offset_um)
     pid = passes.column("pass_id").to_numpy()
     x0, x1 = passes.column("x0_mm").to_numpy(), passes.column("x1_mm").to_numpy()
@@ -534,11 +529,7 @@ def test_predicted_error_is_the_deepest_tooth_passage_of_the_neighbouring_passes
     def want(k):
         """(error, deflection part) per point, from the construction."""
         ea, eb, ec = 10.0 * k, 30.0 * k, 5.0 * k
-        if not pass_ends:
-            return [(ea, ea)] * 7 + [(eb, eb)] + [(ec, ec)] * 6
-        mid_b = min((eb, eb), (ea + standoff(0.025), ea), (ec + standoff(0.025, off), ec))
-        end_a = min((ea, ea), (eb + standoff(0.01), eb), (ec + standoff(0.06, off), ec))
-        return [(ea, ea)] * 6 + [end_a, mid_b] + [(ec, ec)] * 6
+        return [(ea, ea)] * 7 + [(eb, eb)] + [(ec, ec)] * 6
 
     # on the wall at the ball's equator: six points mid A, one 0.01 mm before A's end, mid B, six mid C
     x = np.array([2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 9.99, 10.025, 13.0, 14.0, 15.0, 16.0, 17.0, 18.0])
