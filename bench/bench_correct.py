@@ -20,8 +20,9 @@ import pyarrow as pa
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 from stages.correct import correct_once  # noqa: E402
-from stages.geometry import tool_from_params  # noqa: E402
-from stages.nc_writer import reverse_check, write_program  # noqa: E402
+from stages.geometry.cutter import Cutter  # noqa: E402
+from stages.nc_writer import write_program  # noqa: E402
+from stages.nc.writer import reverse_check
 from stages.parse import parse_program  # noqa: E402
 from stages.split import split_blocks  # noqa: E402
 from tests.ncprograms import raster_program  # noqa: E402
@@ -51,7 +52,7 @@ def main():
     errors = pa.table({"program_id": ["bench"] * n, "pass_id": passes.column("pass_id"),
                        "err_um": rng.normal(5.0, 3.0, n), "nx": nrm[:, 0], "ny": nrm[:, 1], "nz": nrm[:, 2]})
     errors = errors.filter(pa.array(cut))
-    shape = tool_from_params(params["tool"])
+    shape = Cutter.from_params(params["tool"])
     contact = mid + [0.0, 0.0, shape.corner_mm] - shape.corner_mm * nrm
     generating = pa.table({"pass_id": passes.column("pass_id"), "gen_x_mm": contact[:, 0],
                            "gen_y_mm": contact[:, 1], "gen_z_mm": contact[:, 2],

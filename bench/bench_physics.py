@@ -18,7 +18,8 @@ import time
 import numpy as np
 import pyarrow as pa
 
-from stages import cutting, errors
+from stages.cutting import forces as cutting
+from stages.cutting import surface_error as errors
 from stages import deflection as deflection_stage
 from stages import forces as forces_stage
 

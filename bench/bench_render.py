@@ -20,20 +20,23 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from stages import cut_filter as cf_stage  # noqa: E402
 from stages import generating as gen  # noqa: E402
-from stages import geometry as geo  # noqa: E402
+from stages.geometry.cutter import Cutter  # noqa: E402
+from stages.geometry.envelope import envelope_mesh  # noqa: E402
+from stages.geometry.passes import pass_geometry  # noqa: E402
+from stages.geometry.workpiece import load_workpiece  # noqa: E402
 from stages.render import View, make_renderer  # noqa: E402
 from tests.cylinder_case import TOOL, cylinder_case  # noqa: E402
 
 
 def build(ppm):
     passes, stock, q_ref, _, _ = cylinder_case()
-    shape = geo.tool_from_params(TOOL)
-    pg = geo.pass_geometry(passes, TOOL)
-    wp = geo._from_trimesh(stock)
+    shape = Cutter.from_params(TOOL)
+    pg = pass_geometry(passes, TOOL)
+    wp = load_workpiece(stock)
     levels = np.nonzero(np.isfinite(q_ref))[0]
     tips = 0.5 * (pg.p0[levels] + pg.p1[levels])
-    mesh = geo.envelope_mesh(shape, cf_stage.fine_tolerance(ppm))
-    coarse = geo.envelope_mesh(shape, cf_stage.coarse_tolerance(ppm))
+    mesh = envelope_mesh(shape, cf_stage.fine_tolerance(ppm))
+    coarse = envelope_mesh(shape, cf_stage.coarse_tolerance(ppm))
     zlo, zhi = cf_stage.z_range(pg, wp, shape)
     R = shape.radius_mm
     fd = pg.feed_deg[levels]

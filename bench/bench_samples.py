@@ -24,7 +24,9 @@ sys.path.insert(0, ROOT)
 
 from stages import cut_filter as cf_stage  # noqa: E402
 from stages import generating as gen  # noqa: E402
-from stages import geometry as geo  # noqa: E402
+from stages.geometry.cutter import Cutter  # noqa: E402
+from stages.geometry.passes import pass_geometry  # noqa: E402
+from stages.geometry.workpiece import load_workpiece  # noqa: E402
 from stages.render import make_renderer  # noqa: E402
 
 TOOL = dict(type="ball", diameter_mm=10, flutes=2, helix_deg=30, stickout_mm=40)
@@ -39,11 +41,11 @@ def main():
     ap.add_argument("--px-per-mm", type=float, default=20.0)
     a = ap.parse_args()
     passes = pq.read_table(a.passes)
-    shape = geo.tool_from_params(TOOL)
-    wp = geo.load_workpiece(a.stock)
+    shape = Cutter.from_params(TOOL)
+    wp = load_workpiece(a.stock)
     ppm = a.px_per_mm
     # 1. cut filter over the whole program
-    pg = geo.pass_geometry(passes, TOOL)
+    pg = pass_geometry(passes, TOOL)
     cf, t_cf = {}, {}
     for name in ("gl", "cpu"):
         r = make_renderer(name)
@@ -56,7 +58,7 @@ def main():
     print(f"RATIO cut_filter cpu/gl = {t_cf['cpu'] / t_cf['gl']:.1f}x; same cutting flag on {100 * same:.2f} % of passes")
     # 2. generating on a window of the program (the window's own cut filter: earlier passes omitted)
     win = passes.slice(a.first, a.last - a.first)
-    pgw = geo.pass_geometry(win, TOOL)
+    pgw = pass_geometry(win, TOOL)
     out = {}
     for name in ("gl", "cpu"):
         r = make_renderer(name)

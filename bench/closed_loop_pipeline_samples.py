@@ -70,7 +70,7 @@ def window_program(src: bytes, x0: float, x1: float, y0: float, y1: float, name:
     """The raster rows of the program with Y in [y0, y1], each cut to its moves with X in [x0, x1],
     as a program of their own: the sample's header, then per row a retract, a rapid to the row
     piece's start, a plunge at the row's feed and the row's lines verbatim."""
-    from stages.parse import parse_program
+    from stages.nc.reader import parse_program
     lines = src.decode().splitlines()
     blocks, _ = parse_program(src, name, "window")
     col = lambda c: blocks.column(c).to_numpy(zero_copy_only=False)  # noqa: E731
@@ -143,8 +143,8 @@ def _vm_split(wf: dict) -> dict:
 
 def _vm_passes(text: bytes, wf: dict):
     """The passes the virtual machine cuts ``text`` as (parse, then split with :data:`VM_SPLIT`)."""
-    from stages.parse import parse_program
-    from stages.split import split_blocks
+    from stages.nc.reader import parse_program
+    from stages.nc.moves import split_blocks
     nominal = {k: v for k, v in wf["tool"].items() if k != "profile"}
     b, _ = parse_program(text, "vm.nc", "band")
     return split_blocks(b, {"split": _vm_split(wf), "machine": wf["machine"], "tool": nominal})
@@ -156,7 +156,7 @@ def _vm_key(text: bytes, wf: dict, *parts) -> str:
     every other input it reads."""
     import hashlib
     h = hashlib.sha256()
-    for f in ("stages/virtual_machine.py", "stages/gap_geometry.py"):
+    for f in ("stages/virtual_machine.py", "stages/geometry/paths.py"):
         h.update((ROOT / f).read_bytes())
     import pyarrow as pa
     sink = pa.BufferOutputStream()

@@ -70,8 +70,8 @@ def workflow(root: Path, max_iter: int, correct_opts=(), max_pass_mm: float = 40
 
 
 def vm_errors(stock: Path, programs: dict, step_mm: float | None = None) -> dict:
-    from stages.parse import parse_program
-    from stages.split import split_blocks
+    from stages.nc.reader import parse_program
+    from stages.nc.moves import split_blocks
     from stages.virtual_machine import VirtualMachine
     split = {"split": {"chord_tol_mm": 0.001, "max_pass_mm": 40.0, "merge_max_mm": 0.5},
              "machine": {"rapid_mm_min": 30000.0}, "tool": TOOL}

@@ -21,7 +21,7 @@ machine, as a share of the machine's error RMS before correction (the closed loo
 a correction fed one of them cannot, to first order, leave less than its deviation.
 
 It also sorts the probe points by their distance from the design model (the workflow's ``nominal``;
-``stages.geometry.DesignSurface``, never under the true distance, within ~0.1 mm where its surface
+``stages.geometry.workpiece.DesignSurface``, never under the true distance, within ~0.1 mm where its surface
 samples miss the nearest face): on the design (≤ 5 µm), near it (5–100 µm), off it (> 100 µm: the
 probe plan follows the rigid tool's contact lines, so it also probes the tops of the cusps between
 wide rows and the fillet the ball leaves in a corner sharper than itself), and gives each class's
@@ -153,7 +153,7 @@ def design_classes(pts, nominal) -> np.ndarray:
     """Print each design-distance class's part of every program's mean square; return the distances (µm)."""
     import trimesh
 
-    from stages.geometry import DesignSurface
+    from stages.geometry.workpiece import DesignSurface
     mesh = trimesh.load(nominal, force="mesh")
     dist = np.abs(DesignSurface(mesh, spacing_mm=0.1, k=32).signed_distance(
         pts[["x_mm", "y_mm", "z_mm"]].to_numpy(float))) * 1e3

@@ -26,8 +26,9 @@ def main():
 def run(workflow, out, scheduler, workers, until, fresh, quiet):
     """Run WORKFLOW: only partitions not already in the cache are computed."""
     from pipeline.engine import Run
+    from pipeline.graph import mould_graph
     try:
-        r = Run(workflow, out=out, until=until, fresh=fresh)
+        r = Run(workflow, mould_graph(), out=out, until=until, fresh=fresh)
         summary = r.execute(scheduler=scheduler, workers=workers, progress=not quiet)
     except (WorkflowError, InputError) as e:
         click.echo(f"error: {e}", err=True)
@@ -43,8 +44,9 @@ def run(workflow, out, scheduler, workers, until, fresh, quiet):
 def status(workflow, out, as_json):
     """Show which stages and partitions of WORKFLOW are done."""
     from pipeline.engine import Run
+    from pipeline.graph import mould_graph
     try:
-        rows = Run(workflow, out=out).status()
+        rows = Run(workflow, mould_graph(), out=out).status()
     except WorkflowError as e:
         click.echo(f"error: {e}", err=True)
         sys.exit(2)
@@ -130,7 +132,8 @@ def calibrate_forces(workflow, cuts, t, forces_on, out):
     import yaml
     from pathlib import Path
     from pipeline.config import load_workflow
-    from stages.calibrate import calibrate_from_csv
+    from stages.cutting.calibrate import calibrate_from_csv
+    from stages.geometry.cutter import Cutter
     try:
         wf, _ = load_workflow(workflow)
         tool = wf.tool_for(t).model_dump()
@@ -143,7 +146,7 @@ def calibrate_forces(workflow, cuts, t, forces_on, out):
             if not isinstance(c, dict) or "file" not in c:
                 raise WorkflowError(f"{cuts}: cut {i + 1} has no 'file'")
             paths.append(str(base / c.pop("file")))
-        fit = calibrate_from_csv(paths, spec, tool, forces_on=forces_on)
+        fit = calibrate_from_csv(paths, spec, Cutter.from_params(tool), forces_on=forces_on)
     except (WorkflowError, InputError, KeyError) as e:
         click.echo(f"error: {e}", err=True)
         sys.exit(2)

@@ -14,6 +14,8 @@ from typing import Literal, Optional, Union
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from stages.geometry.cutter import DEFAULT_FLUTES, DEFAULT_HELIX_DEG, DEFAULT_STICKOUT_MM
+
 
 class WorkflowError(ValueError):
     """A workflow file that cannot be used; the message names the file and key."""
@@ -24,18 +26,21 @@ class _Strict(BaseModel):
 
 
 class Tool(_Strict):
-    """One cutter. Axisymmetric envelope: ball, bull-nose (corner radius) or flat end mill."""
+    """One cutter: ball, bull-nose or flat end mill (one axisymmetric shape, DESIGN §7)."""
 
-    t: Optional[int] = Field(None, ge=0, description="T number this entry applies to (list form)")
-    type: Literal["ball", "bull", "flat"]
-    diameter_mm: float = Field(gt=0, le=100)
-    flutes: int = Field(2, ge=1, le=12)
-    helix_deg: float = Field(30.0, ge=0, lt=80)
-    stickout_mm: float = Field(40.0, gt=0)
-    corner_radius_mm: Optional[float] = Field(None, ge=0)
-    runout_um: float = Field(0.0, ge=0, le=200)
-    profile: Optional[str] = None  # CSV contact_deg,error_um (claim 2 table)
-    control_point: Literal["tip", "center"] = "tip"
+    t: Optional[int] = Field(None, ge=0, description="T number this entry applies to (when `tool` is a list)")
+    type: Literal["ball", "bull", "flat"] = Field(description="cutter shape")
+    diameter_mm: float = Field(gt=0, le=100, description="cutting diameter, mm")
+    flutes: int = Field(DEFAULT_FLUTES, ge=1, le=12, description="number of cutting edges")
+    helix_deg: float = Field(DEFAULT_HELIX_DEG, ge=0, lt=80, description="helix angle of the edges, degrees")
+    stickout_mm: float = Field(DEFAULT_STICKOUT_MM, gt=0, description="length from the tip to the holder, mm")
+    corner_radius_mm: Optional[float] = Field(None, ge=0, description="corner radius of a bull-nose tool, mm "
+                                              "(ball: diameter/2, flat: 0; leave it out for those)")
+    runout_um: float = Field(0.0, ge=0, le=200, description="axis eccentricity towards flute 0, µm")
+    profile: Optional[str] = Field(None, description="measured contour error table (claim 2): CSV "
+                                   "`contact_deg,error_um`, + = tool smaller than nominal")
+    control_point: Literal["tip", "center"] = Field("tip", description="what the NC coordinates are: the tool "
+                                                    "tip (CAM's usual output) or the corner's centre")
 
     @model_validator(mode="after")
     def _corner(self):
@@ -51,38 +56,34 @@ class Tool(_Strict):
             raise ValueError("control_point: center only makes sense for tools with a corner radius")
         return self
 
-    @property
-    def corner_mm(self) -> float:
-        if self.type == "ball":
-            return self.diameter_mm / 2
-        if self.type == "flat":
-            return 0.0
-        return float(self.corner_radius_mm)
-
 
 class Material(_Strict):
-    """Mechanistic cutting coefficients: cutting (N/mm²) and edge (N/mm) terms."""
+    """Mechanistic cutting coefficients (Altintas): cutting terms N/mm², edge terms N/mm."""
 
-    t: Optional[int] = Field(None, ge=0)
-    name: str
-    ktc: float = Field(ge=0)
-    krc: float = Field(ge=0)
-    kac: float = Field(ge=0)
-    kte: float = Field(0.0, ge=0)
-    kre: float = Field(0.0, ge=0)
-    kae: float = Field(0.0, ge=0)
+    t: Optional[int] = Field(None, ge=0, description="T number this entry applies to (when `material` is a list)")
+    name: str = Field(description="material name, for the reports")
+    ktc: float = Field(ge=0, description="tangential cutting coefficient, N/mm²")
+    krc: float = Field(ge=0, description="radial cutting coefficient, N/mm²")
+    kac: float = Field(ge=0, description="axial cutting coefficient, N/mm²")
+    kte: float = Field(0.0, ge=0, description="tangential edge coefficient, N/mm")
+    kre: float = Field(0.0, ge=0, description="radial edge coefficient, N/mm")
+    kae: float = Field(0.0, ge=0, description="axial edge coefficient, N/mm")
 
 
 class Mode(_Strict):
-    fn_hz: float = Field(gt=0)
-    zeta: float = Field(gt=0, lt=1)
-    k_n_per_um: float = Field(gt=0)
+    """One vibration mode of the tool-tip compliance."""
+
+    fn_hz: float = Field(gt=0, description="natural frequency, Hz")
+    zeta: float = Field(gt=0, lt=1, description="damping ratio")
+    k_n_per_um: float = Field(gt=0, description="modal stiffness, N/µm")
 
 
 class Frf(_Strict):
-    x: Optional[list[Mode]] = None
-    y: Optional[list[Mode]] = None
-    table: Optional[str] = None  # CSV: freq_hz, xx_re, xx_im, yy_re, yy_im (m/N → µm/N stated in header)
+    """Tool-tip compliance: modes for x and y, or a measured FRF table."""
+
+    x: Optional[list[Mode]] = Field(None, description="modes along x")
+    y: Optional[list[Mode]] = Field(None, description="modes along y")
+    table: Optional[str] = Field(None, description="measured FRF: CSV `freq_hz,xx_re,xx_im,yy_re,yy_im` in µm/N")
 
     @model_validator(mode="after")
     def _one_source(self):
@@ -92,75 +93,74 @@ class Frf(_Strict):
 
 
 class Machine(_Strict):
-    rapid_mm_min: float = Field(30000.0, gt=0)
-    frf: Optional[Frf] = None
+    """The machine tool."""
+
+    rapid_mm_min: float = Field(30000.0, gt=0, description="rapid traverse rate: G0 moves are timed at it, mm/min")
+    frf: Optional[Frf] = Field(None, description="tool-tip compliance (needed from `deflection` on)")
 
 
 class Render(_Strict):
-    backend: Literal["auto", "gl", "cpu"] = "auto"
-    px_per_mm: float = Field(20.0, gt=0, le=1000)
+    """The depth-test renders (seed 000)."""
+
+    backend: Literal["auto", "gl", "cpu"] = Field("auto", description="gl (headless EGL; llvmpipe without a GPU), "
+                                                  "cpu (numpy z-buffer), auto (gl if an EGL context opens)")
+    px_per_mm: float = Field(20.0, gt=0, le=1000, description="render resolution, pixels per mm")
 
 
 class Prune(_Strict):
-    min_contact_deg: float = Field(45.0, ge=0, le=90)
+    """Claim 8: passes that cannot matter are not predicted."""
+
+    min_contact_deg: float = Field(45.0, ge=0, le=90, description="predict a pass only where its surface's largest "
+                                   "contact angle reaches this, degrees")
 
 
 class Split(_Strict):
-    """Seed para 0051: how NC motion becomes passes."""
+    """How NC motion becomes passes (seed para 0051)."""
 
-    chord_tol_mm: float = Field(0.001, gt=0, le=1.0)  # arcs → chords, and merges, within this deviation
-    max_pass_mm: float = Field(5.0, gt=0)             # longer cutting moves (> 0.5 % over) are split
-    merge_max_mm: float = Field(0.5, ge=0)            # short moves merged into passes up to this long
+    chord_tol_mm: float = Field(0.001, gt=0, le=1.0, description="arcs become chords, and short moves merge, "
+                                "within this deviation, mm")
+    max_pass_mm: float = Field(5.0, gt=0, description="cutting moves longer than this (by 0.5 %) are cut into "
+                               "equal pieces, mm")
+    merge_max_mm: float = Field(0.5, ge=0, description="runs of short moves merge into passes up to this long, mm")
 
 
 class Correct(_Strict):
-    """Corrected NC programs (seed 000 para 0084, seed 003 iteration)."""
+    """Corrected NC programs (seed 000 para 0084; rounds of seed 003)."""
 
-    max_move_um: float = Field(50.0, gt=0)   # larger vertex moves are clipped and listed
-    tol_um: float = Field(0.1, gt=0)         # iterate until the largest change is below this
-    max_iter: int = Field(5, ge=1, le=50)
-    # rounds 2…: largest fraction of the way a vertex goes from its last move to the move the new
-    # prediction asks for (1 = the plain fixed point P = P0 − e(P)·n); a vertex whose change does
-    # not shrink from round to round has its fraction halved (see stages.correct.correct_once)
-    relax: float = Field(1.0, gt=0, le=1)
-    # limit vertex moves so that the tool does not cut into the surface other passes generate
-    # (a heavy corner pass moved sideways into the wall beside it; stages.correct.gouge_limit)
-    gouge_limit: bool = True
-    # normals of a vertex's two passes closer than this are one normal for the least-squares
-    # refinement of its move (None: stages.correct.NORMAL_TOL_DEG, 2°). Realising two errors Δe apart
-    # along normals θ apart takes Δe / sin θ sideways: on the sample's corner climb, its passes' normals
-    # 2.95° apart in round 2 (+75.8, +87.0 µm) moved a vertex 159 µm towards the other wall
-    normal_tol_deg: Optional[float] = Field(None, gt=0, lt=30)
-    ln_normals: bool = False                 # also write Heidenhain-style LN blocks with normals
-    comp_table: bool = False                 # also write a contact-angle compensation table
-    # cut long straight cuts at the split stage's pass ends, and plain arcs at their chords, and
-    # write the moved ends as inserted G1 lines (stages.nc_writer.via_blocks): the passes of one
-    # long cut or arc can be corrected apart. Off by default: the corrected program then differs
-    # from the source by more than coordinates
-    via_points: bool = False
-    # with via_points: a G1 line meeting another at a path corner (a turn over 30°) gets a via point
-    # this far from the corner inside its pass (0: none; stages.nc_writer.via_blocks). The corner
-    # vertex moves for both passes, and the line's body does not follow the other pass's move: on
-    # the sample a wall climb's corner vertex moved 289 µm towards the other wall for the row
-    # along it, which dragged the climb's body into that wall's rest material and more than
-    # doubled its deflection on the virtual machine (−72 → −166 µm). The whole sample program with
-    # via points: 39.1 / 34.5 % after one / three rounds against 39.8 / 37.7 % without
-    corner_via_mm: float = Field(0.5, ge=0)
+    max_move_um: float = Field(50.0, gt=0, description="a vertex moves at most this far in all; larger moves are "
+                               "clipped and flagged, µm")
+    tol_um: float = Field(0.1, gt=0, description="rounds stop when no vertex changes by this much, µm")
+    max_iter: int = Field(5, ge=1, le=50, description="most rounds of predict → correct")
+    relax: float = Field(1.0, gt=0, le=1, description="largest fraction of its step a vertex takes in rounds 2…; "
+                         "a vertex whose change does not shrink takes half as much, again and again")
+    gouge_limit: bool = Field(True, description="keep the moved tool off the surfaces other passes generate")
+    normal_tol_deg: Optional[float] = Field(None, gt=0, lt=30, description="normals of a vertex's two passes closer "
+                                            "than this are one normal (default 2°), degrees")
+    ln_normals: bool = Field(False, description="also write Heidenhain-style LN blocks with surface normals")
+    comp_table: bool = Field(False, description="also write a contact-angle compensation table (.3dtc.csv)")
+    via_points: bool = Field(False, description="cut long straight moves and arcs at the pass ends and write the "
+                             "moved ends as inserted G1 lines (the program then has more lines than the source)")
+    corner_via_mm: float = Field(0.5, ge=0, description="with via_points: a via point this far from each path "
+                                 "corner of a G1 line (0: none), mm")
 
 
 class Measurements(_Strict):
     """Measured points for the gap diagnosis (DESIGN §8): a CMM export or Parquet, with a column mapping."""
 
-    file: str
-    columns: dict[str, str] = {}                                 # our name (x_mm, nx, err_um, ...) → file's
-    length_unit: Literal["mm", "um", "inch"] = "mm"
-    deviation_unit: Optional[Literal["um", "mm", "inch"]] = None   # None: µm unless the header says
-    noise_um: Optional[float] = Field(None, gt=0)                 # probe noise σ if known (else estimated)
-    off_part_mm: float = Field(0.05, gt=0)                        # farther from every tool envelope = off the part
+    file: str = Field(description="CSV (x y z i j k deviation, like a CMM export) or Parquet of measured points")
+    columns: dict[str, str] = Field({}, description="our column name (x_mm, nx, err_um, …) → the file's")
+    length_unit: Literal["mm", "um", "inch"] = Field("mm", description="unit of the coordinates in the file")
+    deviation_unit: Optional[Literal["um", "mm", "inch"]] = Field(None, description="unit of the deviations "
+                                                                  "(default: µm unless the header says)")
+    noise_um: Optional[float] = Field(None, gt=0, description="probe noise σ if known (else estimated), µm")
+    off_part_mm: float = Field(0.05, gt=0, description="points farther than this from every tool envelope are "
+                               "off the part, mm")
 
 
 class Box(_Strict):
-    box: list[float]
+    """A box-shaped stock."""
+
+    box: list[float] = Field(description="[x0, y0, z0, x1, y1, z1], mm")
 
     @field_validator("box")
     @classmethod
@@ -171,20 +171,24 @@ class Box(_Strict):
 
 
 class Workflow(_Strict):
-    name: str
-    programs: Union[str, list[str]]
-    stock: Union[str, Box, None] = None
-    nominal: Optional[str] = None
-    tool: Union[Tool, list[Tool]]
-    material: Union[Material, list[Material]]
-    machine: Machine = Machine()
-    render: Render = Render()
-    prune: Prune = Prune()
-    split: Split = Split()
-    correct: Correct = Correct()
-    measurements: Union[str, Measurements, None] = None
-    output: str = "runs/out"
-    until: Optional[str] = None  # stop after this stage (the CLI's --until overrides it)
+    """A workflow file (DESIGN §4)."""
+
+    name: str = Field(description="job name, for reports")
+    programs: Union[str, list[str]] = Field(description="NC programs: a glob, or an ordered list of files or globs")
+    stock: Union[str, Box, None] = Field(None, description="the surface before the programs: a mesh (STL/OBJ/PLY) "
+                                         "or {box: [...]}")
+    nominal: Optional[str] = Field(None, description="the design model (mesh), for the generating points and reports")
+    tool: Union[Tool, list[Tool]] = Field(description="the cutter, or a list keyed by T number (`t`)")
+    material: Union[Material, list[Material]] = Field(description="cutting coefficients, or a list keyed by T number")
+    machine: Machine = Field(Machine(), description="the machine tool")
+    render: Render = Field(Render(), description="the renders")
+    prune: Prune = Field(Prune(), description="which passes are predicted")
+    split: Split = Field(Split(), description="how NC motion becomes passes")
+    correct: Correct = Field(Correct(), description="corrected programs")
+    measurements: Union[str, Measurements, None] = Field(None, description="measured points for the gap diagnosis "
+                                                         "(a file, or a mapping with `file`)")
+    output: str = Field("runs/out", description="output directory, relative to the project")
+    until: Optional[str] = Field(None, description="stop after this stage (the CLI's --until overrides it)")
 
     @model_validator(mode="after")
     def _lists_keyed(self):
@@ -205,6 +209,56 @@ class Workflow(_Strict):
     def material_for(self, t: Optional[int]) -> Material:
         return _pick(self.material, t, "material")
 
+    def value(self, dotted: str):
+        """One workflow value by its dotted key (``correct.max_iter``)."""
+        v = self
+        for part in dotted.split("."):
+            v = getattr(v, part)
+        return v
+
+    def params(self, names, tool_t: Optional[int], base: Path) -> dict:
+        """The values of the workflow keys ``names`` as plain dicts, for one program.
+
+        ``tool`` and ``material`` are the program's entry (by its T number ``tool_t``); a dotted
+        name (``machine.rapid_mm_min``) takes one sub-key, so a stage's cache key does not change
+        when unrelated values of the same section do; file references (``tool.profile``,
+        ``machine.frf.table``) become absolute paths.
+        """
+        out: dict = {}
+        for name in names:
+            head, _, sub = name.partition(".")
+            if head == "tool":
+                val = self.tool_for(tool_t).model_dump()
+            elif head == "material":
+                val = self.material_for(tool_t).model_dump()
+            else:
+                val = getattr(self, head)
+                val = val.model_dump() if hasattr(val, "model_dump") else val
+            val = _absolute_files(val, base)
+            if sub and val is not None:
+                out.setdefault(head, {})[sub] = val[sub]
+            else:
+                out[head] = val
+        return out
+
+
+FILE_KEYS = ("profile", "table")     # keys whose string values name files (relative to the project)
+
+
+def _absolute_files(val, base: Path):
+    if isinstance(val, dict):
+        out = {}
+        for k, v in val.items():
+            if k in FILE_KEYS and isinstance(v, str):
+                p = resolve(base, v)
+                if not p.is_file():
+                    raise WorkflowError(f"{k}: file {p} does not exist")
+                out[k] = str(p.resolve())
+            else:
+                out[k] = _absolute_files(v, base)
+        return out
+    return val
+
 
 def _pick(v, t, key):
     if not isinstance(v, list):
@@ -217,27 +271,80 @@ def _pick(v, t, key):
     raise WorkflowError(f"{key}: no entry for T{t} (the workflow has T{', T'.join(str(e.t) for e in v)})")
 
 
-def _format_error(path: Path, err: ValidationError) -> str:
-    """One line per problem, with the key path as the user wrote it (``tool.diameter_mm``).
+def _yaml_lines(text: str) -> dict:
+    """Line (1-based) of every key and list item of a YAML document, by key path."""
+    lines: dict = {}
+
+    def walk(node, prefix):
+        if isinstance(node, yaml.MappingNode):
+            for k, v in node.value:
+                key = prefix + (str(k.value),)
+                lines[key] = k.start_mark.line + 1
+                walk(v, key)
+        elif isinstance(node, yaml.SequenceNode):
+            for i, v in enumerate(node.value):
+                lines[prefix + (str(i),)] = v.start_mark.line + 1
+                walk(v, prefix + (str(i),))
+    try:
+        walk(yaml.compose(text), ())
+    except yaml.YAMLError:
+        pass
+    return lines
+
+
+def models_in(annotation) -> list:
+    """The config models an annotation may hold (through Optional, Union and list)."""
+    import typing
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return [annotation]
+    return [m for a in typing.get_args(annotation) for m in models_in(a)]
+
+
+def _valid_keys(path: tuple) -> list[str]:
+    """The keys a mapping at ``path`` (list indices skipped) may have."""
+    models = [Workflow]
+    for key in path:
+        if key.isdigit():
+            continue
+        models = [m for model in models if key in model.model_fields
+                  for m in models_in(model.model_fields[key].annotation)]
+    return sorted({k for m in models for k in m.model_fields})
+
+
+def _format_error(path: Path, err: ValidationError, text: str = "") -> str:
+    """One line per problem: file, YAML line, the key path as the user wrote it (``tool.diameter_mm``),
+    what is wrong and, for an unknown key, the nearest valid one.
 
     Pydantic reports every branch of a union (``tool`` may be one tool or a list); the branch that
     only says "wrong container type" is dropped when another branch says something specific.
     """
+    import difflib
+    lines_of = _yaml_lines(text)
     items = []
     for e in err.errors():
-        loc = ".".join(str(p) for p in e["loc"] if not (isinstance(p, str) and ("[" in p or "(" in p)))
-        msg = "unknown key" if e["type"] == "extra_forbidden" else e["msg"]
-        items.append((loc or "<top>", msg, e["type"], e.get("input")))
-    specific = {loc for loc, _, typ, _ in items if not typ.endswith(("_type", "union_tag_invalid"))}
-    lines, seen = [f"{path}: invalid workflow"], set()
-    for loc, msg, typ, inp in items:
-        generic = typ.endswith("_type")
-        if generic and any(s == loc or s.startswith(loc + ".") for s in specific):
+        parts = tuple(str(p) for p in e["loc"] if not (isinstance(p, str) and ("[" in p or "(" in p)))
+        msg = e["msg"]
+        if e["type"] == "extra_forbidden":
+            valid = _valid_keys(parts[:-1])
+            near = difflib.get_close_matches(parts[-1], valid, n=1, cutoff=0.5)
+            msg = f"unknown key {parts[-1]!r}" + (f"; did you mean {near[0]!r}?" if near else
+                                                   f"; valid keys here: {', '.join(valid)}")
+        items.append((parts, msg, e["type"], e.get("input")))
+    loc_of = lambda parts: ".".join(parts) or "<top>"  # noqa: E731
+    specific = {loc_of(p) for p, _, typ, _ in items if not typ.endswith(("_type", "union_tag_invalid"))}
+    out, seen = [f"{path}: invalid workflow"], set()
+    for parts, msg, typ, inp in items:
+        loc = loc_of(parts)
+        if typ.endswith("_type") and any(s == loc or s.startswith(loc + ".") for s in specific):
             continue
-        if (loc, msg) not in seen:
-            seen.add((loc, msg))
-            lines.append(f"  {loc}: {msg} (got {inp!r})")
-    return "\n".join(lines)
+        if (loc, msg) in seen:
+            continue
+        seen.add((loc, msg))
+        line = next((lines_of[parts[:k]] for k in range(len(parts), 0, -1) if parts[:k] in lines_of), None)
+        where = f"{path}:{line}: " if line else "  "
+        got = "" if typ == "extra_forbidden" else f" (got {inp!r})"
+        out.append(f"  {where}{loc}: {msg}{got}")
+    return "\n".join(out)
 
 
 def load_workflow(path: str | Path) -> tuple[Workflow, Path]:
@@ -249,8 +356,9 @@ def load_workflow(path: str | Path) -> tuple[Workflow, Path]:
     path = Path(path)
     if not path.is_file():
         raise WorkflowError(f"{path}: no such workflow file")
+    text = path.read_text()
     try:
-        raw = yaml.safe_load(path.read_text())
+        raw = yaml.safe_load(text)
     except yaml.YAMLError as e:
         raise WorkflowError(f"{path}: not valid YAML: {e}") from None
     if not isinstance(raw, dict):
@@ -258,7 +366,7 @@ def load_workflow(path: str | Path) -> tuple[Workflow, Path]:
     try:
         wf = Workflow.model_validate(raw)
     except ValidationError as e:
-        raise WorkflowError(_format_error(path, e)) from None
+        raise WorkflowError(_format_error(path, e, text)) from None
     base = path.resolve().parent
     if base.name == "workflows":
         base = base.parent

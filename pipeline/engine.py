@@ -1,47 +1,29 @@
-"""The engine: stage graph over program partitions, on Dask, through the cache (DESIGN §3).
+"""The engine: a declared stage graph over program partitions, on Dask, through the cache (DESIGN §3).
 
-Execution is stage by stage. For each stage the engine computes, on the client and without
-running anything, every partition's cache key from the stage version, its declared parameters and
-its inputs' keys. Partitions already in the cache are not touched; the missing ones become Dask
-tasks. A Dask cluster is only started when something is missing, so a fully cached nightly run
-costs file hashing and a directory listing.
+Execution is stage by stage. For each stage the engine computes, on the client and without running
+anything, every partition's cache key from the stage's version, its declared parameters and its
+inputs' keys. Partitions already in the cache are not touched; the missing ones become Dask tasks
+(:mod:`pipeline.executor`). A cluster is only started when something is missing, so a fully cached
+nightly run costs file hashing and a directory listing.
 
-Tasks run ``execute_partition`` on the workers: read inputs from the cache, call the stage's pure
-``run``, check every output against its schema, write the entry atomically, return a small record
-(never the tables). Workers therefore need the output directory on a shared filesystem when the
-cluster spans machines.
-
-A stage that declares ``SHARDS = n`` (``generating``: one program's predictions are the night's
-work) runs each partition as n tasks, ``run(inputs, params, shard=(i, n))``, each cached under its
-own key; when all n are done the client joins them (``combine_shards``) into the partition's entry.
+After the graph's main chain, its ``Repeat`` runs rounds of its sub-chain for every partition that
+has not converged, each round's entries ordinary cache entries keyed by the round's inputs and the
+round number. The engine knows no stage by name: inputs are resolved by the rules of
+:mod:`pipeline.graph`, and the graph's ``status`` table says when a partition failed.
 """
 from __future__ import annotations
 
-import importlib
-import logging
-import json
 import os
 import shutil
-import sys
 import time
-import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional
 
-
-import schemas
 from pipeline.cache import Cache, digest, file_sha256
-from pipeline.config import WorkflowError, load_workflow, program_paths, resolve
-from stages import InputError
-
-# Stage modules in execution order. A stage runs once per program partition (or per shard of it).
-STAGE_MODULES = ["stages.parse", "stages.split", "stages.cut_filter", "stages.angle_prune", "stages.generating",
-                 "stages.forces", "stages.deflection", "stages.errors", "stages.correct"]
-
-
-def load_stages() -> list:
-    return [importlib.import_module(m) for m in STAGE_MODULES]
+from pipeline.config import FILE_KEYS, WorkflowError, load_workflow, program_paths, resolve
+from pipeline.executor import Executor
+from pipeline.graph import Graph, Stage
 
 
 @dataclass
@@ -49,10 +31,20 @@ class Partition:
     program_id: str
     path: str
     sha256: str
-    keys: dict[str, str] = field(default_factory=dict)   # stage → cache key
-    failed: Optional[str] = None                         # first failure message (stops later stages)
-    parse_failed: bool = False                           # still gets its `programs` row from split
+    # round → table name → (stage name, cache key) of the stage that wrote it that round
+    tables: dict = field(default_factory=lambda: {1: {}})
+    failed: Optional[str] = None          # first failure message (stops later stages)
     tool_t: Optional[int] = None
+    rounds: list = field(default_factory=list)   # per-round records of the graph's Repeat
+
+    def located(self, name: str, rnd: int):
+        """(stage, key) of input ``name`` (with its @first / @previous qualifier) in round ``rnd``."""
+        base, _, qual = name.partition("@")
+        if qual == "first":
+            return self.tables[1].get(base)
+        if qual == "previous":
+            return self.tables.get(rnd - 1, {}).get(base) if rnd > 1 else None
+        return self.tables.get(rnd, {}).get(base) or self.tables[1].get(base)
 
 
 @dataclass
@@ -84,266 +76,175 @@ def program_ids(paths: list[Path], base: Path) -> list[str]:
 class Run:
     """One invocation of a workflow: config, partitions, cache, reports."""
 
-    def __init__(self, workflow_path: str, out: Optional[str] = None, until: Optional[str] = None,
+    def __init__(self, workflow_path: str, graph: Graph, out: Optional[str] = None, until: Optional[str] = None,
                  fresh: bool = False):
         self.wf, self.base = load_workflow(workflow_path)
         self.workflow_path = workflow_path
+        self.graph = graph
         self.out = Path(out) if out else resolve(self.base, self.wf.output)
         self.cache = Cache(self.out / "cache")
-        self.stages = load_stages()
-        names = [s.NAME for s in self.stages]
+        names = graph.names()
         until = until or self.wf.until
         if until is not None and until not in names:
             raise WorkflowError(f"--until {until!r}: not a stage; stages are {', '.join(names)}")
-        if until is not None:
-            self.stages = self.stages[: names.index(until) + 1]
+        self.stages = list(graph.stages[: names.index(until) + 1] if until else graph.stages)
+        self.repeat = graph.repeat if graph.repeat and len(self.stages) == len(graph.stages) else None
         self.fresh = fresh
-        self.producer = {t: s for s in self.stages for t in s.OUTPUTS}
         paths = program_paths(self.wf, self.base)
-        ids = program_ids(paths, self.base)
-        self.parts = [Partition(pid, str(p.resolve()), file_sha256(p)) for pid, p in zip(ids, paths)]
-        self._static = self._static_inputs()
+        self.parts = [Partition(pid, str(p.resolve()), file_sha256(p))
+                      for pid, p in zip(program_ids(paths, self.base), paths)]
+        self._static = self._workflow_sources()
 
-    # --- keys and inputs ---------------------------------------------------------------------------
-    def _static_inputs(self) -> dict[str, tuple[Any, str]]:
-        """Model inputs (stock, nominal): value handed to stages and its fingerprint."""
+    # --- inputs and keys ------------------------------------------------------------------------------
+    def _workflow_sources(self) -> dict[str, tuple[Any, str]]:
+        """Workflow-level sources (stock, nominal model): the value handed to stages, its fingerprint."""
         out = {}
-        for key in ("stock", "nominal"):
+        for name, key in self.graph.sources.items():
+            if key == "partition":
+                continue
             v = getattr(self.wf, key)
             if v is None:
-                out[key] = (None, "none")
+                out[name] = (None, "none")
             elif isinstance(v, str):
                 p = resolve(self.base, v)
                 if not p.is_file():
                     raise WorkflowError(f"{key}: file {p} does not exist")
-                out[key] = (str(p.resolve()), file_sha256(p))
+                out[name] = (str(p.resolve()), file_sha256(p))
             else:
-                out[key] = (v.model_dump(), digest(v.model_dump()))
+                out[name] = (v.model_dump(), digest(v.model_dump()))
         return out
 
-    def params_for(self, stage, part: Partition) -> dict:
-        """The workflow values a stage declares, per program (tool/material by its T number).
-
-        A dotted name (``machine.rapid_mm_min``) takes one sub-key, so the stage's cache key does
-        not change when unrelated values of the same section do.
-        """
-        params: dict[str, Any] = {}
-        for name in stage.PARAMS:
-            head, _, sub = name.partition(".")
-            if head in ("tool", "material") and part.parse_failed:
-                val = None  # nothing of the program is used: split only reports the parse failure
-            elif head == "tool":
-                val = self.wf.tool_for(part.tool_t).model_dump()
-            elif head == "material":
-                val = self.wf.material_for(part.tool_t).model_dump()
-            else:
-                val = getattr(self.wf, head)
-                val = val.model_dump() if hasattr(val, "model_dump") else val
-            val = self._resolve_files(val)
-            if sub and val is not None:
-                params.setdefault(head, {})[sub] = val[sub]
-            else:
-                params[head] = val
-        # a stage may use some values only under a switch (parse: the split length only with
-        # correct.via_points): the values it does not use do not change its cache key
-        used = getattr(stage, "used_params", None)
+    def params_for(self, stage: Stage, part: Partition) -> dict:
+        params = self.wf.params(stage.params, part.tool_t, self.base)
+        used = getattr(stage.load(), "used_params", None)   # values a stage uses only under a switch
         return used(params) if used is not None else params
 
-    def _resolve_files(self, val):
-        """Make file references in parameters absolute (tool.profile, machine.frf.table)."""
-        if isinstance(val, dict):
-            out = {}
-            for k, v in val.items():
-                if k in ("profile", "table") and isinstance(v, str):
-                    p = resolve(self.base, v)
-                    if not p.is_file():
-                        raise WorkflowError(f"{k}: file {p} does not exist")
-                    out[k] = str(p.resolve())
-                else:
-                    out[k] = self._resolve_files(v)
-            return out
-        return val
+    def _input(self, name: str, part: Partition, rnd: int):
+        """(fingerprint for the key, spec for the task) of one declared input."""
+        base = name.partition("@")[0]
+        if self.graph.sources.get(base) == "partition":
+            return ([part.program_id, part.sha256],
+                    ("value", {"path": part.path, "sha256": part.sha256, "program_id": part.program_id}))
+        if base in self._static:
+            value, fp = self._static[base]
+            return fp, ("value", value)
+        loc = part.located(name, rnd)
+        if loc is None:
+            if name.endswith("@previous"):
+                return None, ("value", None)
+            raise KeyError(f"input {name!r}: no stage before it writes {base!r}")
+        return loc[1], ("table", str(self.cache.table_path(loc[0], loc[1], base)))
 
-    def key_for(self, stage, part: Partition, params: dict) -> str:
-        ins = {}
-        for name in stage.INPUTS:
-            if name == "program_file":
-                ins[name] = [part.program_id, part.sha256]
-            elif name in self._static:
-                ins[name] = self._static[name][1]
-            else:
-                up = self.producer[name]
-                ins[name] = part.keys[up.NAME]
+    def plan(self, stage: Stage, part: Partition, rnd: int):
+        """Cache key, parameters and input specs of ``stage`` on ``part`` in round ``rnd``."""
+        params = self.params_for(stage, part)
+        fps, specs = {}, {}
+        for name in stage.inputs:
+            fps[name], specs[name] = self._input(name, part, rnd)
         files = {}
         _collect_file_hashes(params, files)
-        return digest({"stage": stage.NAME, "version": stage.VERSION, "params": params,
-                       "files": files, "inputs": ins})
+        spec = {"stage": stage.name, "version": stage.version, "params": params, "files": files, "inputs": fps}
+        if rnd > 1:
+            spec["round"] = rnd
+        return digest(spec), params, specs
 
-    def task_inputs(self, stage, part: Partition) -> dict:
-        spec = {}
-        for name in stage.INPUTS:
-            if name == "program_file":
-                spec[name] = ("value", {"path": part.path, "sha256": part.sha256, "program_id": part.program_id})
-            elif name in self._static:
-                spec[name] = ("value", self._static[name][0])
-            else:
-                up = self.producer[name]
-                spec[name] = ("table", str(self.cache.table_path(up.NAME, part.keys[up.NAME], name)))
-        return spec
-
-    # --- execution ------------------------------------------------------------------------------------
+    # --- execution ---------------------------------------------------------------------------------------
     def execute(self, scheduler: Optional[str] = None, workers: Optional[int] = None,
                 progress: bool = True) -> dict:
+        from pipeline.publish import publish
         t_run = time.perf_counter()
         if self.fresh and self.cache.root.exists():
             shutil.rmtree(self.cache.root)
         self.cache.sweep_temp(older_than_s=600)
         reports, failures = [], []
-        client = None
-        try:
+        with Executor(scheduler, workers, progress) as ex:
             for stage in self.stages:
-                t0 = time.perf_counter()
-                rep = StageReport(stage.NAME)
-                todo = []
-                for part in self.parts:
-                    if part.failed:
-                        continue
-                    try:
-                        params = self.params_for(stage, part)
-                    except WorkflowError as e:
-                        part.failed = f"{part.path}: {e}"
-                        failures.append({"program_id": part.program_id, "stage": stage.NAME, "message": part.failed})
-                        rep.failed += 1
-                        continue
-                    key = self.key_for(stage, part, params)
-                    part.keys[stage.NAME] = key
-                    rep.partitions += 1
-                    if self.cache.has(stage.NAME, key):
-                        rep.cached += 1
-                    else:
-                        todo.append((part, key, params))
-                if todo:
-                    if client is None:
-                        client = _connect(scheduler, workers)
-                    for part, rec in _run_tasks(client, stage, todo, self, progress):
-                        rep.compute_s += rec.get("elapsed_s", 0.0)
-                        if rec["ok"]:
-                            rep.computed += 1
-                        else:
-                            rep.failed += 1
-                            part.failed = rec["message"]
-                            part.keys.pop(stage.NAME, None)
-                            failures.append({"program_id": part.program_id, "stage": stage.NAME,
-                                             "message": rec["message"], "traceback": rec.get("traceback")})
-                self._after_stage(stage, failures)
-                rep.wall_s = time.perf_counter() - t0
-                reports.append(rep)
-            if any(s.NAME == "correct" for s in self.stages):   # rounds 2… of predict → correct
-                from pipeline.iterate import iterate_corrections
-                holder = [client]
+                reports.append(self._run_stage(ex, stage, self.parts, 1, failures))
+            if self.repeat is not None:
+                self._run_rounds(ex, reports, failures)
+            self.dashboard = ex.dashboard
+        return publish(self, reports, failures, time.perf_counter() - t_run)
 
-                def get_client():
-                    if holder[0] is None:
-                        holder[0] = _connect(scheduler, workers)
-                    return holder[0]
-                try:
-                    self.correct_rounds = iterate_corrections(self, get_client, reports, failures, progress)
-                finally:
-                    client = holder[0]
-        finally:
-            if client is not None:
-                _close(client)
-        tables = self.materialize()
-        if "corrected" in tables:
-            from pipeline.nc_output import write_corrected_programs
-            for part in self.parts:
-                if part.failed or "correct" not in part.keys:
-                    continue
-                try:
-                    write_corrected_programs(self, part)
-                except Exception as e:  # one program's output must not cost the others
-                    failures.append({"program_id": part.program_id, "stage": "nc", "message": f"nc: {type(e).__name__}: {e}",
-                                     "traceback": traceback.format_exc()})
-        report = None
-        if "errors" in tables:
-            from pipeline.report import write_report
-            try:
-                report = write_report(self.out, self.wf.name)
-            except Exception as e:  # a picture must never cost the tables
-                failures.append({"program_id": None, "stage": "report", "message": f"report: {type(e).__name__}: {e}",
-                                 "traceback": traceback.format_exc()})
-        summary = self.summary(reports, failures, tables, time.perf_counter() - t_run)
-        summary["report"] = str(report) if report else None
-        summary["correct_rounds"] = getattr(self, "correct_rounds", None)
-        (self.out / "run.json").write_text(json.dumps(summary, indent=2, default=str))
-        return summary
-
-    def _after_stage(self, stage, failures):
-        """Learn what later stages need from this one: the T number (parse) and program status."""
-        for part in self.parts:
-            if part.failed or stage.NAME not in part.keys:
+    def _run_stage(self, ex: Executor, stage: Stage, parts: list, rnd: int, failures: list) -> StageReport:
+        t0 = time.perf_counter()
+        rep = StageReport(stage.name if rnd == 1 else f"{stage.name}@{rnd}")
+        todo = []
+        for part in parts:
+            if part.failed:
                 continue
-            if "parse_status" in stage.OUTPUTS:
-                row = self.cache.read(stage.NAME, part.keys[stage.NAME], "parse_status").to_pylist()[0]
-                part.tool_t, part.parse_failed = row["tool"], row["status"] != "ok"
-            if "programs" in stage.OUTPUTS:
-                row = self.cache.read(stage.NAME, part.keys[stage.NAME], "programs").to_pylist()[0]
-                if row["status"] != "ok":
-                    part.failed = row["message"]
-                    failures.append({"program_id": part.program_id, "message": row["message"],
-                                     "stage": "parse" if part.parse_failed else stage.NAME})
+            try:
+                key, params, specs = self.plan(stage, part, rnd)
+            except WorkflowError as e:
+                self._fail(part, f"{part.path}: {e}", rep.name, failures)
+                rep.failed += 1
+                continue
+            rep.partitions += 1
+            if self.cache.has(stage.name, key):
+                rep.cached += 1
+                self._done(stage, part, key, rnd, failures)
+            else:
+                todo.append((part, key, params, specs))
+        for part, key, rec in ex.run(stage, todo, self.cache):
+            rep.compute_s += rec.get("elapsed_s", 0.0)
+            if rec["ok"]:
+                rep.computed += 1
+                self._done(stage, part, key, rnd, failures)
+            else:
+                rep.failed += 1
+                self._fail(part, rec["message"], rep.name, failures, rec.get("traceback"))
+        rep.wall_s = time.perf_counter() - t0
+        return rep
 
-    def materialize(self) -> dict[str, int]:
-        """Expose the current run's partitions as ``<out>/tables/<table>/<program_id>.parquet``.
+    def _done(self, stage: Stage, part: Partition, key: str, rnd: int, failures: list) -> None:
+        """Record where the stage's tables are, and what the graph's status table says."""
+        for name in stage.outputs:
+            part.tables.setdefault(rnd, {})[name] = (stage.name, key)
+        if self.graph.status in stage.outputs:
+            row = self.cache.read(stage.name, key, self.graph.status).to_pylist()[0]
+            part.tool_t = row.get("tool")
+            if row.get("status", "ok") != "ok":
+                self._fail(part, row.get("message") or "failed", stage.name, failures)
 
-        Files are hard links to cache entries (a copy where links are impossible), rebuilt every
-        run so the tables hold exactly this workflow's programs.
-        """
-        root = self.out / "tables"
-        staging = self.out / ".tables.tmp"
-        shutil.rmtree(staging, ignore_errors=True)
-        counts: dict[str, int] = {}
-        for stage in self.stages:
-            for tname in stage.OUTPUTS:
-                d = staging / tname
-                d.mkdir(parents=True, exist_ok=True)
-                counts[tname] = 0
-                for part in self.parts:
-                    key = part.keys.get(stage.NAME)
-                    if key is None or not self.cache.has(stage.NAME, key):
-                        continue
-                    src = self.cache.table_path(stage.NAME, key, tname)
-                    dst = d / f"{part.program_id}.parquet"
-                    try:
-                        os.link(src, dst)
-                    except OSError:
-                        shutil.copyfile(src, dst)
-                    counts[tname] += 1
-        if root.exists():
-            shutil.rmtree(root)
-        staging.mkdir(parents=True, exist_ok=True)
-        os.replace(staging, root)
-        return counts
+    @staticmethod
+    def _fail(part: Partition, message: str, stage: str, failures: list, tb: Optional[str] = None) -> None:
+        part.failed = message
+        failures.append({"program_id": part.program_id, "stage": stage, "message": message, "traceback": tb})
 
-    def summary(self, reports, failures, tables, wall_s) -> dict:
-        import pyarrow.parquet as pq
-        n_passes = 0
-        prog_dir = self.out / "tables" / "passes"
-        if prog_dir.is_dir():
-            n_passes = sum(pq.ParquetFile(p).metadata.num_rows for p in prog_dir.glob("*.parquet"))
-        failed_ids = sorted({f["program_id"] for f in failures if f["program_id"] is not None})
-        return {
-            "workflow": str(self.workflow_path), "name": self.wf.name, "output": str(self.out),
-            "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "wall_s": round(wall_s, 3),
-            "counts": {"programs": len(self.parts), "programs_ok": len(self.parts) - len(failed_ids),
-                       "programs_failed": len(failed_ids), "passes": n_passes, "tables": tables},
-            "stages": [vars(r) | {"compute_s": round(r.compute_s, 3), "wall_s": round(r.wall_s, 3)} for r in reports],
-            "failures": failures,
-        }
+    def _run_rounds(self, ex: Executor, reports: list, failures: list) -> None:
+        """Rounds 2 … max of the graph's Repeat, for the partitions whose last round did not converge."""
+        rep = self.repeat
+        done = [p for p in self.parts if not p.failed and rep.until_table in p.tables[1]]
+        for part in done:
+            part.rounds.append(self._round_record(part, 1))
+        for rnd in range(2, int(self.wf.value(rep.max_rounds)) + 1):
+            active = [p for p in done if not p.failed and not self._converged(p, rnd - 1)]
+            if not active:
+                break
+            for stage in rep.stages:
+                reports.append(self._run_stage(ex, stage, active, rnd, failures))
+            for part in active:
+                if not part.failed:
+                    part.rounds.append(self._round_record(part, rnd))
 
-    # --- status ---------------------------------------------------------------------------------------
+    def _converged(self, part: Partition, rnd: int) -> bool:
+        stage_name, key = part.tables[rnd][self.repeat.until_table]
+        stage = next(s for s in self.repeat.stages if s.name == stage_name)
+        table = self.cache.read(stage_name, key, self.repeat.until_table)
+        return bool(self.repeat.until(table, self.params_for(stage, part)))
+
+    def _round_record(self, part: Partition, rnd: int) -> dict:
+        tables = {}
+        for name in self.repeat.record_inputs:
+            stage_name, key = part.located(name, rnd)
+            tables[name] = self.cache.read(stage_name, key, name.partition("@")[0])
+        return {"round": rnd, **self.repeat.record(tables)}
+
+    def last_round(self, part: Partition) -> int:
+        return max(part.tables)
+
+    # --- status ------------------------------------------------------------------------------------------
     def status(self) -> list[dict]:
-        """Which stages and partitions are done, without computing anything."""
+        """Which stages and partitions are done (main chain), without computing anything."""
         rows = []
         for stage in self.stages:
             done = pending = blocked = 0
@@ -352,135 +253,24 @@ class Run:
                     blocked += 1
                     continue
                 try:
-                    key = self.key_for(stage, part, self.params_for(stage, part))
+                    key = self.plan(stage, part, 1)[0]
                 except (KeyError, WorkflowError):
                     pending += 1
                     continue
-                if self.cache.has(stage.NAME, key):
+                if self.cache.has(stage.name, key):
                     done += 1
-                    part.keys[stage.NAME] = key
+                    self._done(stage, part, key, 1, [])
                 else:
                     pending += 1
-            self._after_stage(stage, [])
-            rows.append({"stage": stage.NAME, "done": done, "pending": pending, "blocked": blocked})
+            rows.append({"stage": stage.name, "done": done, "pending": pending, "blocked": blocked})
         return rows
 
 
 def _collect_file_hashes(obj, out: dict, prefix: str = ""):
+    """Content hashes of the files parameters name (a changed tool profile invalidates its stages)."""
     if isinstance(obj, dict):
         for k, v in obj.items():
-            if k in ("profile", "table") and isinstance(v, str) and os.path.isfile(v):
+            if k in FILE_KEYS and isinstance(v, str) and os.path.isfile(v):
                 out[f"{prefix}{k}"] = file_sha256(v)
             else:
                 _collect_file_hashes(v, out, f"{prefix}{k}.")
-
-
-# --- worker side ----------------------------------------------------------------------------------------
-def execute_partition(stage_module: str, cache_root: str, key: str, inputs: dict, params: dict,
-                      shard: Optional[tuple] = None) -> dict:
-    """Run one stage on one partition, or one shard of it (on a Dask worker). Returns a small
-    record, never tables."""
-    import pyarrow.parquet as pq
-    t0 = time.perf_counter()
-    stage = importlib.import_module(stage_module)
-    cache = Cache(cache_root)
-    if cache.has(stage.NAME, key):  # a concurrent run (or a retried task) already made it
-        return {"ok": True, "elapsed_s": 0.0}
-    try:
-        loaded = {n: (pq.read_table(v) if kind == "table" else v) for n, (kind, v) in inputs.items()}
-        result = stage.run(loaded, params) if shard is None else stage.run(loaded, params, shard=tuple(shard))
-        missing = set(stage.OUTPUTS) - set(result)
-        if missing:
-            raise RuntimeError(f"stage {stage.NAME} did not return tables {sorted(missing)}")
-        checked = {name: schemas.check(name, result[name]) for name in stage.OUTPUTS}
-        cache.write(stage.NAME, key, checked)
-        return {"ok": True, "elapsed_s": time.perf_counter() - t0}
-    except InputError as e:
-        return {"ok": False, "message": str(e), "elapsed_s": time.perf_counter() - t0}
-    except Exception as e:  # a bug or an unexpected input: this partition fails, the run goes on
-        return {"ok": False, "message": f"{stage.NAME}: {type(e).__name__}: {e}",
-                "traceback": traceback.format_exc(), "elapsed_s": time.perf_counter() - t0}
-
-
-def _connect(scheduler: Optional[str], workers: Optional[int]):
-    from distributed import Client, LocalCluster
-    if scheduler:
-        return Client(scheduler, timeout="30s")
-    n = workers or os.cpu_count() or 1
-    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                           dashboard_address=None, silence_logs=logging.CRITICAL)
-    return Client(cluster)
-
-
-def _close(client):
-    cluster = getattr(client, "cluster", None)
-    client.close()
-    if cluster is not None:
-        cluster.close()
-
-
-def shard_key(key: str, i: int, n: int) -> str:
-    """Cache key of shard ``i`` of ``n`` of a partition's entry ``key``."""
-    return f"{key}-shard{i}of{n}"
-
-
-def _run_tasks(client, stage, todo, run: Run, progress: bool):
-    """Run ``todo`` = [(partition, key, params)] on the cluster; yields (partition, record) as each
-    partition finishes. A stage declaring ``SHARDS`` = n > 1 runs each partition as n tasks
-    (``stage.run(..., shard=(i, n))``, each cached on its own, so a killed run keeps finished
-    shards) and the partition's entry is ``stage.combine_shards`` of them."""
-    from distributed import as_completed
-    from tqdm import tqdm
-    n_sh = max(1, int(getattr(stage, "SHARDS", 1)))
-    futs, left, recs = {}, {}, {}
-    for part, key, params in todo:
-        inputs = run.task_inputs(stage, part)
-        if n_sh == 1:
-            f = client.submit(execute_partition, stage.__name__, str(run.cache.root), key, inputs, params,
-                              key=f"{stage.NAME}-{key}", pure=False)
-            futs[f] = (part, key)
-            continue
-        left[key], recs[key] = n_sh, []
-        for i in range(n_sh):
-            sk = shard_key(key, i, n_sh)
-            f = client.submit(execute_partition, stage.__name__, str(run.cache.root), sk, inputs, params,
-                              (i, n_sh), key=f"{stage.NAME}-{sk}", pure=False)
-            futs[f] = (part, key)
-    bar = tqdm(total=len(futs), desc=f"{stage.NAME:>12}", unit="task", disable=not progress or None,
-               file=sys.stderr, leave=True)
-    try:
-        for fut in as_completed(futs):
-            part, key = futs[fut]
-            try:
-                rec = fut.result()
-            except Exception as e:  # the worker died (out of memory, crash): recorded, run goes on
-                rec = {"ok": False, "message": f"{stage.NAME}: worker failed: {type(e).__name__}: {e}"}
-            bar.update(1)
-            if n_sh == 1:
-                yield part, rec
-                continue
-            recs[key].append(rec)
-            left[key] -= 1
-            if left[key] == 0:
-                yield part, _join_shards(stage, run.cache, key, n_sh, recs.pop(key))
-    finally:
-        bar.close()
-
-
-def _join_shards(stage, cache: Cache, key: str, n: int, recs: list) -> dict:
-    """The partition's record once all its shards are done: its entry written from theirs."""
-    elapsed = sum(r.get("elapsed_s", 0.0) for r in recs)
-    bad = [r for r in recs if not r["ok"]]
-    if bad:
-        return {**bad[0], "elapsed_s": elapsed}
-    try:
-        parts = [{name: cache.read(stage.NAME, shard_key(key, i, n), name) for name in stage.OUTPUTS}
-                 for i in range(n)]
-        joined = stage.combine_shards(parts)
-        cache.write(stage.NAME, key, {name: schemas.check(name, joined[name]) for name in stage.OUTPUTS})
-        for i in range(n):                     # the joined entry replaces them
-            shutil.rmtree(cache.entry(stage.NAME, shard_key(key, i, n)), ignore_errors=True)
-        return {"ok": True, "elapsed_s": elapsed}
-    except Exception as e:
-        return {"ok": False, "message": f"{stage.NAME}: joining shards: {type(e).__name__}: {e}",
-                "traceback": traceback.format_exc(), "elapsed_s": elapsed}

@@ -31,7 +31,8 @@ def run_tables(workflow: str, until: str, out: Optional[str] = None, workers: Op
                scheduler: Optional[str] = None) -> tuple[dict, Path, object]:
     """Run the workflow up to ``until`` (cached) and read its tables: {table: pa.Table}."""
     from pipeline.engine import Run
-    r = Run(workflow, out=out, until=until)
+    from pipeline.graph import mould_graph
+    r = Run(workflow, mould_graph(), out=out, until=until)
     summary = r.execute(scheduler=scheduler, workers=workers, progress=False)
     failed = [f for f in summary["failures"] if f.get("stage") != "report"]
     if failed:
@@ -119,7 +120,7 @@ class Predictor:
     def profile_csv(self, contour: dict, name: Optional[str] = None) -> str:
         """A tool profile table (claim 2, ``contact_deg,error_um``) with the fitted dent added to the
         workflow's profile, written where ``tool.profile`` can point at it."""
-        from stages.errors import read_profile
+        from stages.cutting.surface_error import read_profile
         q = np.round(np.arange(0.0, 90.0 + 1e-9, 0.25), 6)
         e = contour["a_um"] * np.exp(-0.5 * ((q - contour["q0_deg"]) / contour["width_deg"]) ** 2)
         if self.tool.get("profile"):
@@ -239,7 +240,7 @@ def simulate(workflow: str, program: Optional[str], effects: list[str], noise_um
              out_file: str, plan: Optional[str] = None, grid_mm: float = 0.5) -> dict:
     """Machine the program(s) on the virtual machine with ``effects`` and write a measurement file."""
     from stages.measurements import write_measurements
-    from stages.gap_geometry import nearest_pass
+    from stages.geometry.paths import nearest_pass
     from stages.virtual_machine import VirtualMachine, grid_plan, parse_effect
     wf, base = load_workflow(workflow)
     eff = dict(parse_effect(e) for e in effects)

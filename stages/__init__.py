@@ -14,41 +14,14 @@ Every stage module exposes
 A stage never imports Dask, never reads or writes the cache, and never opens output files: the
 engine (``pipeline/``) does all of that. Bad input is reported by raising ``stages.InputError``
 with a ``file:line: what and why`` message; the engine records it against the program and goes on.
+
+Beside the stage modules, the computation lives in packages by concept: ``nc`` (reading, splitting
+and writing NC text), ``geometry`` (the cutter, envelopes, sweeps, workpieces), ``render`` (the
+depth-test back ends), ``scan`` (the render chain's kernels), ``cutting`` (forces, deflection,
+surface error), ``correction`` (vertex moves), ``gap`` (the sim-to-real diagnosis),
+``tool_measure`` (tool images and wear) and ``virtual_machine`` (the independent check).
 """
 
 
 class InputError(ValueError):
     """Bad user input (a program, a model, a table). The message names the file/line/key."""
-
-
-def read_numeric_csv(path, columns, what: str):
-    """Named numeric columns of a small CSV table (force records, FRF tables, ...).
-
-    Returns an (n, len(columns)) float array in the order of ``columns``. Blank lines and lines
-    starting with ``#`` are skipped; a missing column or a non-number is an ``InputError`` naming
-    the file and line, ``what`` saying which input it is.
-    """
-    from pathlib import Path
-
-    import numpy as np
-
-    try:
-        lines = Path(path).read_text().splitlines()
-    except OSError as e:
-        raise InputError(f"{what}: cannot read {path}: {e.strerror or e}") from None
-    header = [h.strip().lower() for h in lines[0].split(",")] if lines else []
-    missing = [c for c in columns if c not in header]
-    if missing:
-        raise InputError(f"{path}:1: {what} header lacks {missing} (expected {','.join(columns)}), "
-                         f"got {lines[0] if lines else ''!r}")
-    cols = [header.index(c) for c in columns]
-    rows = []
-    for n, line in enumerate(lines[1:], start=2):
-        if not line.strip() or line.lstrip().startswith("#"):
-            continue
-        parts = line.split(",")
-        try:
-            rows.append([float(parts[c]) for c in cols])
-        except (ValueError, IndexError):
-            raise InputError(f"{path}:{n}: expected numbers {','.join(columns)}, got {line!r}") from None
-    return np.array(rows, dtype=float).reshape(-1, len(columns))

@@ -20,7 +20,7 @@ import pyarrow as pa
 
 import schemas
 from stages import InputError
-from stages import geometry as geo
+from stages.geometry.passes import pass_geometry
 
 NAME = "angle_prune"
 VERSION = "2"
@@ -41,7 +41,7 @@ def _rows_of(pass_ids, table_ids):
 
 def run(inputs: dict, params: dict) -> dict:
     passes = inputs["passes"]
-    pg = geo.pass_geometry(passes, params["tool"])
+    pg = pass_geometry(passes, params["tool"])
     prune = dict(params.get("prune") or {})
     thr = float(prune.get("min_contact_deg", 45.0))
     cf = inputs["cut_filter"]

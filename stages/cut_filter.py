@@ -29,7 +29,17 @@ import numpy as np
 import pyarrow as pa
 
 import schemas
-from stages import geometry as geo
+from stages.geometry.cutter import Cutter
+from stages.geometry.envelope import envelope_mesh
+from stages.geometry.passes import (
+    CONTINUE_DEG,
+    PassGeometry,
+    overlaps,
+    pass_geometry,
+    window_xy_bounds,
+)
+from stages.geometry.sweeps import ordered_sweep_scene
+from stages.geometry.workpiece import Workpiece, load_workpiece, workpiece_scene
 from stages.render import View, make_renderer
 
 NAME = "cut_filter"
@@ -59,7 +69,7 @@ def render_settings(params):
     return make_renderer(rp.get("backend", "auto")), ppm
 
 
-def z_range(pg: geo.PassGeometry, wp: geo.Workpiece, shape: geo.ToolShape):
+def z_range(pg: PassGeometry, wp: Workpiece, shape: Cutter):
     """Depth range (absolute z) that holds everything a from-below view can see."""
     zs = np.concatenate([pg.p0[:, 2], pg.p1[:, 2], wp.bounds[:, 2]]) if len(pg.p0) else wp.bounds[:, 2]
     return float(zs.min()) - 1.0, float(zs.max()) + shape.stickout_mm + 1.0
@@ -93,7 +103,7 @@ def scan_tiles(pg, shape, wp, px_per_mm, which, zlo, zhi, halo_mm=0.0):
     return views, cores
 
 
-def cut_filter(pg: geo.PassGeometry, shape: geo.ToolShape, wp: geo.Workpiece, renderer,
+def cut_filter(pg: PassGeometry, shape: Cutter, wp: Workpiece, renderer,
                px_per_mm: float, tol_mm: float | None = None):
     """Claim-7 and claim-8 renders for every pass, as one ordered scan per tile.
 
@@ -103,12 +113,12 @@ def cut_filter(pg: geo.PassGeometry, shape: geo.ToolShape, wp: geo.Workpiece, re
     """
     n = len(pg.pass_id)
     tol = coarse_tolerance(px_per_mm) if tol_mm is None else tol_mm
-    mesh = geo.envelope_mesh(shape, tol)
+    mesh = envelope_mesh(shape, tol)
     zlo, zhi = z_range(pg, wp, shape)
     bounds = pg.sweep_bounds(shape)
     # only passes whose sweep reaches the stock can cut; rapid moves (motion 0) never cut
     reach = pg.motion != 0
-    reach &= geo.overlaps(bounds[:, 0], bounds[:, 1], wp.bounds[:1], wp.bounds[1:])[:, 0]
+    reach &= overlaps(bounds[:, 0], bounds[:, 1], wp.bounds[:1], wp.bounds[1:])[:, 0]
     reach &= bounds[:, 0, 2] <= wp.bounds[1, 2]
     cand = np.nonzero(reach)[0]
     counts = np.zeros((n, N_BINS), np.int64)
@@ -116,17 +126,17 @@ def cut_filter(pg: geo.PassGeometry, shape: geo.ToolShape, wp: geo.Workpiece, re
     surface_px = np.zeros(n, np.int64)
     surface_q = np.full(n, -np.inf)
     for view in scan_tiles(pg, shape, wp, px_per_mm, cand, zlo, zhi)[0]:
-        lo_w, hi_w = geo.window_xy_bounds([view])
-        inside = cand[geo.overlaps(lo_w, hi_w, bounds[cand, 0], bounds[cand, 1])[0]]
+        lo_w, hi_w = window_xy_bounds([view])
+        inside = cand[overlaps(lo_w, hi_w, bounds[cand, 0], bounds[cand, 1])[0]]
 
         def batches(inside=inside):
             for a in range(0, len(inside), PASSES_PER_DRAW):
                 k = inside[a:a + PASSES_PER_DRAW]
                 # sweeps are pushed back by the mesh tolerance: a pass must cut deeper than
                 # the polygonisation error into the stock to count (a repeat never counts)
-                yield geo.ordered_sweep_scene(mesh, pg.p0[k], pg.p1[k], k, bias=tol)
+                yield ordered_sweep_scene(mesh, pg.p0[k], pg.p1[k], k, bias=tol)
 
-        res = renderer.scan(view, geo.workpiece_scene(wp, [view], -2.0), batches(), n, N_BINS)
+        res = renderer.scan(view, workpiece_scene(wp, [view], -2.0), batches(), n, N_BINS)
         counts += res.counts
         b_max = np.maximum(b_max, res.b_max)
         fin = res.final
@@ -148,11 +158,11 @@ def cut_filter(pg: geo.PassGeometry, shape: geo.ToolShape, wp: geo.Workpiece, re
     return out
 
 
-def line_interior(pg: geo.PassGeometry, cuts: np.ndarray) -> np.ndarray:
+def line_interior(pg: PassGeometry, cuts: np.ndarray) -> np.ndarray:
     """Passes inside a cutting run of one line, predicted at their middle (bool per pass).
 
     A pass counts when the moves before and after it both cut, are joined to it end to start and
-    carry its direction on within :data:`geometry.CONTINUE_DEG` (pieces of a line split for
+    carry its direction on within :data:`CONTINUE_DEG` (pieces of a line split for
     length or at via points, a curve's CAM chords). Why: the ball at the end of the move before
     has already cut the material over most of such a pass's length, down to a sliver of
     d²/2R (12 µm at 0.5 mm past the joint with a Ø20 ball) that the coarse mesh tolerance (half a
@@ -170,7 +180,7 @@ def line_interior(pg: geo.PassGeometry, cuts: np.ndarray) -> np.ndarray:
     d = pg.p1 - pg.p0
     ln = np.linalg.norm(d, axis=1)
     u = d / np.where(ln > 0, ln, 1.0)[:, None]
-    cos_on = np.cos(np.radians(geo.CONTINUE_DEG))
+    cos_on = np.cos(np.radians(CONTINUE_DEG))
     # joint i: move i ends where move i + 1 starts, both cut, and the direction runs on
     joint = (np.linalg.norm(pg.p0[1:] - pg.p1[:-1], axis=1) < 1e-6) & cuts[1:] & cuts[:-1] \
         & (ln[1:] > 0) & (ln[:-1] > 0) & (pg.motion[1:] != 0) & (pg.motion[:-1] != 0) \
@@ -203,9 +213,9 @@ def prediction_position(hist):
 
 def run(inputs: dict, params: dict) -> dict:
     passes = inputs["passes"]
-    shape = geo.tool_from_params(params["tool"])
-    pg = geo.pass_geometry(passes, params["tool"])
-    wp = geo.load_workpiece(inputs.get("stock"))
+    shape = Cutter.from_params(params["tool"])
+    pg = pass_geometry(passes, params["tool"])
+    wp = load_workpiece(inputs.get("stock"))
     renderer, ppm = render_settings(params)
     res = cut_filter(pg, shape, wp, renderer, ppm)
     n = len(pg.pass_id)

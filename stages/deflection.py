@@ -12,8 +12,8 @@ import numpy as np
 import pyarrow as pa
 
 from stages import InputError
-from stages import frf as frf_mod
-from stages.forces import list_column, list_values
+from stages.cutting.frf import deflection_xy
+from stages.tables import list_column, list_values
 
 NAME = "deflection"
 VERSION = "1"
@@ -41,7 +41,7 @@ def run(inputs: dict, params: dict, method: str = "fft") -> dict:
     rpm = forces.column("spindle_rpm").to_numpy()
     if np.any(~(rpm > 0)):
         raise InputError(f"forces: pass {forces.column('pass_id')[int(np.argmin(rpm > 0))]} has no spindle speed")
-    dx, dy = frf_mod.deflection_xy(fx, fy, rpm, frf, method=method)
+    dx, dy = deflection_xy(fx, fy, rpm, frf, method=method)
     table = pa.table({
         "program_id": forces.column("program_id"),
         "pass_id": forces.column("pass_id"),

@@ -67,7 +67,7 @@ import numpy as np
 import pyarrow as pa
 
 from stages import InputError
-from stages.gap_geometry import corner_features, nearest_pass, program_paths
+from stages.geometry.paths import corner_features, nearest_pass, program_paths
 
 ALPHA = 1e-3          # false-claim rate of the per-effect test (a priori, not tuned)
 MAX_EFFECTS = 3
@@ -82,11 +82,11 @@ def associate(meas: pa.Table, passes: pa.Table, errors: Optional[pa.Table], tool
               off_part_mm: float = 0.05, deflection: Optional[pa.Table] = None) -> tuple[dict, list]:
     """Features of every measured point (dict of arrays) and the rejected points [(id, reason)].
 
-    The predicted error at a point is the prediction model's (``stages.errors.machining_error``)
+    The predicted error at a point is the prediction model's (``stages.cutting.surface_error.machining_error``)
     evaluated at the point's own normal, contact and rotation angle with the deflection of its pass
     (``deflection`` table; the nearest predicted pass when its own was not predicted), plus the tool
     shape error at the point's q; where the tooth passages of neighbouring passes sweep the point
-    (within ``passage_envelope.PASSAGE_REVS`` revolutions of feed along the path: across a corner,
+    (within ``stages.cutting.passages.PASSAGE_REVS`` revolutions of feed along the path: across a corner,
     beyond a short pass), the deepest of them (``predicted_at_points``). Without a deflection table
     the pass's ``errors`` row is used.
     """
@@ -188,7 +188,7 @@ def passage_geometry(F: dict, passes: pa.Table, tool: dict) -> dict:
     (``stages.passage_envelope``: across a corner, or beyond a pass shorter than the feed per
     revolution), each with its own deflection. Per program, the moves of the path in execution
     order (tips; the ``control_point: center`` programs lowered by the corner radius, as the errors
-    stage does), and per (point, move) pair within ``passage_envelope.PASSAGE_REVS`` revolutions of
+    stage does), and per (point, move) pair within ``stages.cutting.passages.PASSAGE_REVS`` revolutions of
     feed of the point along the path: the move's nominal stand-off from the point (µm along the
     tool normal; the point first moved onto its own pass's nominal envelope, so that pass's own
     stand-off is 0), the contact angle q, height above the tip and position angle φ (from that
@@ -198,11 +198,10 @@ def passage_geometry(F: dict, passes: pa.Table, tool: dict) -> dict:
     Returns {program_id: dict(pass_id, feed_move, row, move, standoff_um, q, height, phi)}; ``row``
     indexes F, ``move`` the program's moves (``pass_id[move]``).
     """
-    from stages import cutting
-    from stages import passage_envelope as pe
-    R = float(tool["diameter_mm"]) / 2
-    rc = cutting.corner_radius_mm(tool)
-    stick = float(tool.get("stickout_mm") or 4 * float(tool["diameter_mm"]))
+    from stages.cutting import passages as pe
+    from stages.geometry.cutter import Cutter
+    cutter = Cutter.from_params(tool)
+    R, rc, stick = cutter.radius_mm, cutter.corner_mm, cutter.stickout_mm
     pid_col = np.asarray(passes.column("program_id").to_pylist(), dtype=object)
     pts = np.stack([F["x_mm"], F["y_mm"], F["z_mm"]], 1)
     out = {}
@@ -263,7 +262,7 @@ def predicted_at_points(F: dict, deflection_of, tool: dict, rows: Optional[np.nd
         s_j + e_j          (µm along the point's normal)
 
     with s_j the nominal stand-off of pass j's tool from the point and e_j its error there
-    (``stages.errors.machining_error`` with pass j's deflection at the contact of its tool, the
+    (``stages.cutting.surface_error.machining_error`` with pass j's deflection at the contact of its tool, the
     errors stage's ``_deepest_passage`` at a measured point). Only passes with a deflection row
     take part. ``deflection_of(program_id)`` gives the deflection table to use.
 
@@ -271,8 +270,9 @@ def predicted_at_points(F: dict, deflection_of, tool: dict, rows: Optional[np.nd
     stand-off is in the error only (it does not scale with the force model). With ``runout_part``
     the first item is that passage's runout part alone.
     """
-    from stages.errors import machining_error, read_profile
-    from stages.forces import list_values
+    from stages.cutting.surface_error import machining_error, read_profile
+    from stages.geometry.cutter import Cutter
+    from stages.tables import list_values
     rows = np.ones(len(F["q_deg"]), bool) if rows is None else np.asarray(rows, bool)
     idx = np.flatnonzero(rows)
     pos = np.full(len(rows), -1, np.int64)
@@ -307,7 +307,7 @@ def predicted_at_points(F: dict, deflection_of, tool: dict, rows: Optional[np.nd
             r, j = r[keep], j[keep]
             g = {kk: geo[kk][sel][keep] for kk in ("standoff_um", "q", "height", "phi")}
             if r.size:
-                ej = machining_error(dx_all[j], dy_all[j], g["phi"], g["q"], nrm[idx[r]], g["height"], tool, profile)
+                ej = machining_error(dx_all[j], dy_all[j], g["phi"], g["q"], nrm[idx[r]], g["height"], Cutter.from_params(tool), profile)
                 total = g["standoff_um"] + ej["err_um"]
                 total = np.where(np.isnan(total), np.inf, total)
                 # the deepest passage per point (pairs sorted by total, the first of each point)
@@ -336,8 +336,9 @@ def _predicted_at_points(deflection, program_id, pass_ids, q, phi, normal, tool,
     Returns (error, deflection + runout part, shape part); with ``runout_part`` the first item is
     the runout part alone (−ρ·sin q of the flute that leaves the surface). With ``full``: ({"total":
     error, "runout": runout part}, deflection + runout part, shape part), NaN kept."""
-    from stages.errors import machining_error, read_profile
-    from stages.forces import list_values
+    from stages.cutting.surface_error import machining_error, read_profile
+    from stages.geometry.cutter import Cutter
+    from stages.tables import list_values
     z = np.zeros(len(q))
     pid = np.asarray(deflection.column("program_id").to_pylist(), dtype=object) if deflection is not None else []
     m = np.flatnonzero(pid == program_id) if len(pid) else np.zeros(0, np.int64)
@@ -354,7 +355,7 @@ def _predicted_at_points(deflection, program_id, pass_ids, q, phi, normal, tool,
     R = float(tool["diameter_mm"]) / 2
     z_c = R * (1 - np.cos(np.radians(q)))
     profile = read_profile(tool["profile"]) if tool.get("profile") else None
-    res = machining_error(dx, dy, phi, q, normal, z_c, tool, profile)
+    res = machining_error(dx, dy, phi, q, normal, z_c, Cutter.from_params(tool), profile)
     if full:
         return ({"total": res["err_um"], "runout": res["err_runout_um"]},
                 res["err_deflection_um"] + res["err_runout_um"], res["err_shape_um"])
@@ -457,7 +458,7 @@ def _env_geometry(F, a_max_um: float, lam_max_mm: float) -> dict:
     for g in geo["cache"]:
         if g["a_max"] >= a_max_um and g["lam_max"] >= lam_max_mm:
             return g
-    from stages.gap_geometry import corner_features, path_point
+    from stages.geometry.paths import corner_features, path_point
     R, Z = float(geo["R"]), int(geo["flutes"])
     amax = abs(a_max_um) * 1e-3 * math.sqrt(2)                   # mm; sin(θ/2)/sin 45° ≤ √2
     fz = F["feed_mm_min"] / np.maximum(F["rpm"] * Z, 1e-9)

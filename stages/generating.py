@@ -65,9 +65,28 @@ import pyarrow as pa
 
 import schemas
 from stages import InputError
-from stages import geometry as geo
-from stages.cut_filter import (PASSES_PER_DRAW, coarse_tolerance, fine_tolerance, render_settings,
-                               scan_tiles, z_range)
+from stages.cut_filter import (
+    PASSES_PER_DRAW,
+    coarse_tolerance,
+    fine_tolerance,
+    render_settings,
+    scan_tiles,
+    z_range,
+)
+from stages.geometry.cutter import Cutter
+from stages.geometry.envelope import envelope_copies, envelope_mesh
+from stages.geometry.passes import (
+    PassGeometry,
+    overlaps,
+    pass_geometry,
+    window_xy_bounds,
+)
+from stages.geometry.sweeps import ordered_sweep_scene, segment_scene
+from stages.geometry.workpiece import (
+    load_design_surface,
+    load_workpiece,
+    workpiece_scene,
+)
 from stages.render import Scene, Snapshot, View
 
 NAME = "generating"
@@ -146,7 +165,7 @@ def unpack_engagement(row):
     return E, z, phi
 
 
-def feed_per_tooth(pg: geo.PassGeometry, flutes: int, fallback_mm: float):
+def feed_per_tooth(pg: PassGeometry, flutes: int, fallback_mm: float):
     rpm = np.where(np.isfinite(pg.spindle_rpm), pg.spindle_rpm, 0.0)
     f = np.where(rpm > 0, pg.feed_mm_min / np.maximum(rpm, 1e-9) / max(int(flutes), 1), 0.0)
     return np.where((f > 0) & np.isfinite(f), f, fallback_mm)
@@ -213,7 +232,7 @@ def _segments_around(pg, cutting, s_p, f, win_lo, win_hi, bounds, gap):
     Returns three (window, a, b) segment lists: T1 far (path up to s_p - f - gap), T1 near
     (s_p - f - gap to s_p - f) and T2 far (from s_p + f + gap on).
     """
-    ov = geo.overlaps(win_lo, win_hi, bounds[:, 0], bounds[:, 1]) & cutting[None, :]
+    ov = overlaps(win_lo, win_hi, bounds[:, 0], bounds[:, 1]) & cutting[None, :]
     w, j = np.nonzero(ov)
     L = pg.length[j]
     S = pg.s0[j]
@@ -254,11 +273,11 @@ def _layer_scene(views, pg, cutting, s_p, f, bounds, wp, mesh, m_tips, m_feed, c
     # a sweep can only hide M where it is nearer than M: M lies within R/4 behind the window
     # centre over an R-wide window, so sweeps are gathered over that depth only (the stock,
     # farther away by its allowance, keeps the whole range)
-    lo, hi = geo.window_xy_bounds([replace(v, far_mm=min(v.far_mm, 0.25 * R)) for v in views])
+    lo, hi = window_xy_bounds([replace(v, far_mm=min(v.far_mm, 0.25 * R)) for v in views])
     segs = _segments_around(pg, cutting, s_p, f, lo, hi, bounds, gap)
     (w1, a1, b1), (w4, a4, b4), (w2, a2, b2) = segs
     wb = (np.tile(lo, (N_LAYERS, 1)), np.tile(hi, (N_LAYERS, 1)))
-    parts = [geo.workpiece_scene(wp, views, ID_W)]
+    parts = [workpiece_scene(wp, views, ID_W)]
     # all views of a batch share the view direction only when seen from below; oblique views
     # are grouped one per scene part (culling depends on the direction)
     per_view = not all(np.allclose(v.view_dir, d) for v in views)
@@ -269,15 +288,15 @@ def _layer_scene(views, pg, cutting, s_p, f, bounds, wp, mesh, m_tips, m_feed, c
         if per_view:
             for i, v in enumerate(views):
                 s = w == i
-                parts.append(geo.segment_scene(mesh, a[s], b[s], w[s] + layer * n, np.full(s.sum(), ident),
+                parts.append(segment_scene(mesh, a[s], b[s], w[s] + layer * n, np.full(s.sum(), ident),
                                                v.view_dir, window_bounds=wb, coarse_mesh=coarse,
                                                fine_ends=fine(w[s], a[s], b[s])))
         else:
-            parts.append(geo.segment_scene(mesh, a, b, w + layer * n, np.full(len(w), ident), d,
+            parts.append(segment_scene(mesh, a, b, w + layer * n, np.full(len(w), ident), d,
                                            window_bounds=wb, coarse_mesh=coarse,
                                            fine_ends=fine(w, a, b)))
     for i, v in enumerate(views if not material_only else ()):
-        tris, q, phi, _ = geo.envelope_copies(mesh, m_tips[i:i + 1], feed_deg=m_feed[i:i + 1],
+        tris, q, phi, _ = envelope_copies(mesh, m_tips[i:i + 1], feed_deg=m_feed[i:i + 1],
                                               view_dir=v.view_dir)
         parts.append(_scene(tris, 3 * n + i, ID_M, phi, q))
     return Scene.concat(parts)
@@ -373,7 +392,7 @@ def generating(pg, shape, wp, renderer, px_per_mm, predict_idx, pred_tips, flute
                n_phi=N_PHI, dz_mm=None, tol_mm=None, design=None):
     """Generating points and engagement for passes ``predict_idx`` at tips ``pred_tips``.
 
-    ``design``: the nominal model (:class:`stages.geometry.DesignSurface`) or None; with it, the
+    ``design``: the nominal model (:class:`DesignSurface`) or None; with it, the
     generating point of a pass that leaves both design surface and rest material is taken on the
     design surface (:data:`DESIGN_TOL_MM`).
 
@@ -384,8 +403,8 @@ def generating(pg, shape, wp, renderer, px_per_mm, predict_idx, pred_tips, flute
     R = shape.radius_mm
     tol = fine_tolerance(px_per_mm) if tol_mm is None else tol_mm
     dz = R * DZ_PER_RADIUS if dz_mm is None else dz_mm
-    mesh = geo.envelope_mesh(shape, tol)
-    coarse = geo.envelope_mesh(shape, max(tol, coarse_tolerance(px_per_mm)))
+    mesh = envelope_mesh(shape, tol)
+    coarse = envelope_mesh(shape, max(tol, coarse_tolerance(px_per_mm)))
     zlo, zhi = z_range(pg, wp, shape)
     cutting = pg.motion != 0
     bounds = pg.sweep_bounds(shape)
@@ -425,7 +444,7 @@ def generating(pg, shape, wp, renderer, px_per_mm, predict_idx, pred_tips, flute
         # M at the prediction points, from below, many windows per atlas
         views = [View((t[0], t[1], 0.0), (0, 0, 1.0), (np.cos(np.radians(a)), np.sin(np.radians(a)), 0.0),
                       2 * half, 2 * half, px_per_mm, zlo, zhi) for t, a in zip(pred_tips[ks], fd[ks])]
-        tris, q, phi, owner = geo.envelope_copies(mesh, pred_tips[ks], feed_deg=fd[ks], view_dir=(0, 0, 1.0))
+        tris, q, phi, owner = envelope_copies(mesh, pred_tips[ks], feed_deg=fd[ks], view_dir=(0, 0, 1.0))
         mimgs = renderer.render(views, make_scene(tris, owner, ID_M, a=phi, b=q))
         del tris, q, phi, owner
         for v, M, k in zip(views, mimgs, ks):
@@ -620,8 +639,8 @@ def _scan_program(pg, shape, wp, renderer, px_per_mm, mesh, predict_idx, tips, f
         if not len(mine):                                      # no prediction point in this tile
             final.append(None)
             continue
-        lo_w, hi_w = geo.window_xy_bounds([view])
-        inside = cand[geo.overlaps(lo_w, hi_w, bounds[cand, 0], bounds[cand, 1])[0]]
+        lo_w, hi_w = window_xy_bounds([view])
+        inside = cand[overlaps(lo_w, hi_w, bounds[cand, 0], bounds[cand, 1])[0]]
         mine = mine[np.argsort(predict_idx[mine], kind="stable")]
         rects = []
         for k in mine:
@@ -636,12 +655,12 @@ def _scan_program(pg, shape, wp, renderer, px_per_mm, mesh, predict_idx, tips, f
                 upto = int(np.searchsorted(inside, snap[k]))
                 for a in range(done, upto, PASSES_PER_DRAW):
                     j = inside[a:min(upto, a + PASSES_PER_DRAW)]
-                    yield geo.ordered_sweep_scene(mesh, pg.p0[j], pg.p1[j], j)
+                    yield ordered_sweep_scene(mesh, pg.p0[j], pg.p1[j], j)
                 done = max(done, upto)
                 yield rect                                     # the material before the pass
             for a in range(done, len(inside), PASSES_PER_DRAW):
                 j = inside[a:a + PASSES_PER_DRAW]
-                yield geo.ordered_sweep_scene(mesh, pg.p0[j], pg.p1[j], j)
+                yield ordered_sweep_scene(mesh, pg.p0[j], pg.p1[j], j)
 
         taken = iter(zip(mine, rects))
 
@@ -657,7 +676,7 @@ def _scan_program(pg, shape, wp, renderer, px_per_mm, mesh, predict_idx, tips, f
             eng[k] = (_engagement(shape, sv, depth, tips[k], fd[k], dz, n_phi, tol), dz,
                       (np.cos(np.radians(fd[k])), np.sin(np.radians(fd[k]))))
 
-        res = renderer.scan(view, geo.workpiece_scene(wp, [view], -2.0), batches(), len(pg.pass_id), 1,
+        res = renderer.scan(view, workpiece_scene(wp, [view], -2.0), batches(), len(pg.pass_id), 1,
                             on_snapshot=on_snapshot)
         final.append(res.final)
     return final, tile_of
@@ -878,10 +897,10 @@ def run(inputs: dict, params: dict, shard: tuple[int, int] | None = None) -> dic
     every n-th of them from the i-th on (see ``SHARDS``)."""
     passes = inputs["passes"]
     tool = params["tool"]
-    shape = geo.tool_from_params(tool)
+    shape = Cutter.from_params(tool)
     t = tool[0] if isinstance(tool, (list, tuple)) else tool
-    pg = geo.pass_geometry(passes, tool)
-    wp = geo.load_workpiece(inputs.get("stock"))
+    pg = pass_geometry(passes, tool)
+    wp = load_workpiece(inputs.get("stock"))
     renderer, ppm = render_settings(params)
     cf = inputs["cut_filter"]
     ap = inputs["angle_prune"]
@@ -906,7 +925,7 @@ def run(inputs: dict, params: dict, shard: tuple[int, int] | None = None) -> dic
     idx = np.array([pos[p] for p in chosen], np.int64)
     tips = np.array([pred[p] for p in chosen], float).reshape(-1, 3)
     gen, eng = generating(pg, shape, wp, renderer, ppm, idx, tips, int(t.get("flutes") or 2),
-                          design=geo.load_design_surface(inputs.get("nominal")))
+                          design=load_design_surface(inputs.get("nominal")))
     m = len(idx)
     pid = pa.array([pg.program_id] * m, pa.string())
     g = pa.table({"program_id": pid, "pass_id": pa.array(chosen, pa.int32()),

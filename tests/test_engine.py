@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import signal
 import socket
 import subprocess
@@ -19,7 +18,7 @@ import yaml
 from click.testing import CliRunner
 
 from pipeline.cli import main
-from pipeline.config import WorkflowError, load_workflow
+from pipeline.config import load_workflow
 from tests.ncprograms import raster_program
 
 WF = {
@@ -131,13 +130,17 @@ def test_via_points_make_parsing_depend_on_the_split_length(tmp_path):
     assert len(read_table(o, "blocks")) < n_via
 
 
-def test_stage_version_bump_invalidates_that_stage_and_its_successors(tmp_path, monkeypatch):
+def test_stage_version_bump_invalidates_that_stage_and_its_successors(tmp_path):
+    from dataclasses import replace
+
     from pipeline.engine import Run
+    from pipeline.graph import mould_graph
     wf_path = make_project(tmp_path, n_programs=1)
-    Run(str(wf_path)).execute(workers=1, progress=False)
-    import stages.parse
-    monkeypatch.setattr(stages.parse, "VERSION", stages.parse.VERSION + "-test")
-    r = Run(str(wf_path))
+    graph = mould_graph()
+    Run(str(wf_path), graph).execute(workers=1, progress=False)
+    bumped = replace(graph, stages=(replace(graph.stages[0], version=graph.stages[0].version + "-test"),)
+                     + graph.stages[1:])
+    r = Run(str(wf_path), bumped)
     rows = {row["stage"]: row for row in r.status()}
     assert rows["parse"]["pending"] == 1 and rows["split"]["pending"] == 1
 

@@ -6,13 +6,18 @@ import pyarrow as pa
 import pytest
 
 import schemas
-from stages import cutting, errors, frf
+from stages.geometry.cutter import Cutter
+from stages import errors
+from stages.cutting import forces as cutting
+from stages.cutting import frf
+from stages.cutting import surface_error
 from stages import deflection as deflection_stage
 from stages import forces as forces_stage
 
 BALL = {"type": "ball", "diameter_mm": 10.0, "flutes": 2, "helix_deg": 30.0, "corner_radius_mm": None,
         "runout_um": 0.0, "profile": None}
 FLAT = {**BALL, "type": "flat"}
+BALL_C, FLAT_C = Cutter.from_params(BALL), Cutter.from_params(FLAT)
 MAT = {"name": "m", "ktc": 2000.0, "krc": 700.0, "kac": 300.0, "kte": 20.0, "kre": 15.0, "kae": 5.0}
 STIFF = {"x": [{"fn_hz": 20000.0, "zeta": 0.05, "k_n_per_um": 2.0}],
          "y": [{"fn_hz": 20000.0, "zeta": 0.05, "k_n_per_um": 2.0}], "table": None}
@@ -28,8 +33,8 @@ def test_sign_tool_pushed_away_from_wall_leaves_material():
     pushed +y (away from the wall) by 5 µm leaves 5 µm: err = +5; pushed into it: −5."""
     n = np.array([[0.0, 1.0, 0.0]])
     for dy, want in ((5.0, 5.0), (-5.0, -5.0)):
-        r = errors.machining_error(_const(0), _const(dy), np.array([-90.0]), np.array([90.0]), n,
-                                   np.array([5.0]), FLAT)
+        r = surface_error.machining_error(_const(0), _const(dy), np.array([-90.0]), np.array([90.0]), n,
+                                   np.array([5.0]), FLAT_C)
         assert r["err_um"][0] == pytest.approx(want) and r["err_deflection_um"][0] == pytest.approx(want)
 
 
@@ -41,11 +46,11 @@ def test_sign_from_physics_down_milling_wall():
     phi = np.radians((np.arange(n_phi) + 0.5) * 360 / n_phi)
     E = (np.cos(phi) > 0) & (R * np.sin(phi) < -(R - ae))
     E = np.broadcast_to(E, (n_z, n_phi))
-    F = cutting.cutting_forces(E[None], a / n_z, 0.05, FLAT, MAT)
+    F = cutting.cutting_forces(E[None], a / n_z, 0.05, FLAT_C, MAT)
     d = frf.tool_deflection(F, np.array([3000.0]), STIFF)
     assert d[0, :, 1].mean() > 0                                  # pushed away from the wall
-    r = errors.machining_error(d[..., 0], d[..., 1], np.array([-90.0]), np.array([90.0]),
-                               np.array([[0.0, 1.0, 0.0]]), np.array([z[n_z // 2]]), FLAT)
+    r = surface_error.machining_error(d[..., 0], d[..., 1], np.array([-90.0]), np.array([90.0]),
+                               np.array([[0.0, 1.0, 0.0]]), np.array([z[n_z // 2]]), FLAT_C)
     assert r["err_um"][0] > 0
 
 
@@ -56,14 +61,14 @@ def test_profile_dent_moves_error_by_exactly_the_dent(tmp_path):
     q = np.arange(0, 91, 1.0)
     e = np.where(q == 45.0, 3.0, 0.0)
     np.savetxt(p, np.column_stack([q, e]), delimiter=",", header="contact_deg,error_um", comments="")
-    prof = errors.read_profile(p)
+    prof = surface_error.read_profile(p)
     qs = np.array([30.0, 45.0, 60.0, 44.5])
     n = np.stack([np.zeros(4), np.sin(np.radians(qs)), np.cos(np.radians(qs))], axis=1)
     rng = np.random.default_rng(2)
     dx, dy = rng.normal(0, 4, (4, N_ROT)), rng.normal(0, 4, (4, N_ROT))
-    args = (dx, dy, np.full(4, -90.0), qs, n, cutting.corner_height_mm(5.0, qs), BALL)
-    base = errors.machining_error(*args)["err_um"]
-    dent = errors.machining_error(*args, profile=prof)["err_um"]
+    args = (dx, dy, np.full(4, -90.0), qs, n, BALL_C.corner_height(qs), BALL_C)
+    base = surface_error.machining_error(*args)["err_um"]
+    dent = surface_error.machining_error(*args, profile=prof)["err_um"]
     assert dent - base == pytest.approx([0.0, 3.0, 0.0, 1.5], abs=1e-12)
 
 
@@ -72,8 +77,8 @@ def test_runout_term_is_minus_e_sin_q():
     tool = {**BALL, "flutes": 3, "runout_um": 6.0}
     qs = np.array([10.0, 45.0, 90.0])
     n = np.stack([np.zeros(3), np.sin(np.radians(qs)), np.cos(np.radians(qs))], axis=1)
-    r = errors.machining_error(_const(0, 3), _const(0, 3), np.full(3, -90.0), qs, n,
-                               cutting.corner_height_mm(5.0, qs), tool)
+    r = surface_error.machining_error(_const(0, 3), _const(0, 3), np.full(3, -90.0), qs, n,
+                               BALL_C.corner_height(qs), Cutter.from_params(tool))
     assert r["err_um"] == pytest.approx(-6.0 * np.sin(np.radians(qs)))
     assert list(r["flute"]) == [0, 0, 0]
 
@@ -87,8 +92,8 @@ def test_deflection_read_at_generating_spindle_angle():
     z = 5.0 * (1 - np.cos(np.radians(q)))
     lag = np.degrees(z * np.tan(np.radians(30.0)) / 5.0)
     cands = np.mod(-phi_c - 180.0 * np.arange(2) + lag, 360.0)
-    r = errors.machining_error(dx, np.zeros_like(dx), np.array([phi_c]), np.array([q]),
-                               np.array([[1.0, 0.0, 0.0]]), np.array([z]), BALL)
+    r = surface_error.machining_error(dx, np.zeros_like(dx), np.array([phi_c]), np.array([q]),
+                               np.array([[1.0, 0.0, 0.0]]), np.array([z]), BALL_C)
     j = int(np.argmin(cands))
     assert r["spindle_deg"][0] == pytest.approx(cands[j]) and r["flute"][0] == j
     assert r["err_um"][0] == pytest.approx(cands[j] / 10.0, abs=1e-9)
@@ -108,7 +113,7 @@ def test_error_vs_contact_angle_trend(side, fn_hz):
     mode = {"fn_hz": fn_hz, "zeta": 0.03, "k_n_per_um": 2.0}
     frf_params = {"x": [mode], "y": [mode]}
     qs = np.array([1.0, 3.0, 5.0, 10.0, 20.0, 30.0, 40.0, 50.0, 60.0, 70.0, 80.0, 89.0])
-    r = errors.error_vs_contact_angle(qs, tool, MAT, frf_params, 4800.0, 6000.0, step_mm=0.63,
+    r = surface_error.error_vs_contact_angle(qs, Cutter.from_params(tool), MAT, frf_params, 4800.0, 6000.0, step_mm=0.63,
                                       stock_mm=0.2, side=side, n_z=96)
     d = frf.tool_deflection(r["forces_n"], np.full(len(qs), 6000.0), frf_params)
     dmax = np.abs(d).max(axis=(1, 2))

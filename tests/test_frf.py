@@ -6,9 +6,12 @@ import pyarrow as pa
 import pytest
 
 import schemas
-from stages import InputError, cutting, frf
+from stages.geometry.cutter import Cutter
+from stages import InputError
+from stages.cutting import forces as cutting
+from stages.cutting import frf
 from stages import deflection as deflection_stage
-from stages.forces import list_column
+from stages.tables import list_column
 
 MODE = {"fn_hz": 900.0, "zeta": 0.03, "k_n_per_um": 2.0}
 
@@ -18,7 +21,7 @@ def _slot_force(rpm=6000.0, flutes=2, helix=30.0, n_rot=128):
     n_z, n_phi, a = 20, 360, 3.0
     phi = (np.arange(n_phi) + 0.5) * 360 / n_phi
     E = np.broadcast_to(np.cos(np.radians(phi)) > 0, (n_z, n_phi))
-    tool = {"type": "flat", "diameter_mm": 10, "flutes": flutes, "helix_deg": helix, "runout_um": 4.0}
+    tool = Cutter.from_params({"type": "flat", "diameter_mm": 10, "flutes": flutes, "helix_deg": helix, "runout_um": 4.0})
     k = {"ktc": 2000, "krc": 700, "kac": 300, "kte": 20, "kre": 15, "kae": 5}
     return cutting.cutting_forces(E[None], a / n_z, 1000 / (rpm * flutes), tool, k,
                                   rotation_deg=cutting.rotation_grid_deg(n_rot))[0]

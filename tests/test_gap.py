@@ -21,8 +21,8 @@ from click.testing import CliRunner
 
 from stages import InputError
 from stages.measurements import read_measurements
-from stages.parse import parse_program
-from stages.split import split_blocks
+from stages.nc.reader import parse_program
+from stages.nc.moves import split_blocks
 
 ROOT = Path(__file__).resolve().parent.parent
 SAMPLE = ROOT / "data_samples" / "gap"
@@ -460,7 +460,7 @@ def test_fits_beyond_a_real_machines_limits_are_flagged():
 
 
 def test_force_scale_scales_the_deflection_part(sample):
-    from stages.gap_geometry import nearest_pass
+    from stages.geometry.paths import nearest_pass
     from stages.virtual_machine import VirtualMachine
     passes, pts, nrm = sample
     passes = passes.slice(0, 120)                  # the first rows: two machines built in seconds

@@ -9,7 +9,11 @@ import pyarrow as pa
 import pytest
 
 from stages import angle_prune, cut_filter, generating
-from stages import geometry as geo
+from stages.geometry.cutter import Cutter
+from stages.geometry.envelope import envelope_mesh
+from stages.geometry.passes import PassGeometry, pass_geometry
+from stages.geometry.sweeps import ordered_sweep_scene
+from stages.geometry.workpiece import box_workpiece, load_workpiece, workpiece_scene
 from stages.generating import unpack_engagement
 from stages.render import make_renderer
 from tests.cylinder_case import TOOL, cylinder_case
@@ -75,9 +79,9 @@ def test_gl_and_cpu_agree_on_generating_points(cylinder):
     if not _gl_available():
         pytest.skip("gl back end unavailable (no EGL context)")
     passes, path, q_ref, _ = cylinder
-    shape = geo.tool_from_params(TOOL)
-    pg = geo.pass_geometry(passes, TOOL)
-    wp = geo.load_workpiece(path)
+    shape = Cutter.from_params(TOOL)
+    pg = pass_geometry(passes, TOOL)
+    wp = load_workpiece(path)
     levels = np.nonzero(np.isfinite(q_ref))[0][[0, 17, 35, 48]]      # 0°, 30°, 62°, 85.4°
     tips = 0.5 * (pg.p0[levels] + pg.p1[levels])
     res = {b: generating.generating(pg, shape, wp, make_renderer(b), 20.0, levels, tips, 2)[0]
@@ -91,9 +95,9 @@ def test_gl_and_cpu_agree_on_generating_points(cylinder):
 def test_view_correction_needed_on_steep_walls(cylinder, monkeypatch):
     """Without claim 6 the steepest levels are lost or worse; with it they are found."""
     passes, path, q_ref, _ = cylinder
-    shape = geo.tool_from_params(TOOL)
-    pg = geo.pass_geometry(passes, TOOL)
-    wp = geo.load_workpiece(path)
+    shape = Cutter.from_params(TOOL)
+    pg = pass_geometry(passes, TOOL)
+    wp = load_workpiece(path)
     levels = np.nonzero(np.isfinite(q_ref))[0][-3:]                   # 85.4°, 87.2°, 89°
     tips = 0.5 * (pg.p0[levels] + pg.p1[levels])
     r = make_renderer("auto")
@@ -117,7 +121,7 @@ def test_engagement_of_a_slot_matches_closed_form():
     those on the exact crescent, the envelope outside the ball's own sweep up to p - f (a point at
     height z, angle φ, radius r(z) is inside that sweep iff r cos φ < -f/2).
     """
-    from stages import cutting
+    from stages.cutting import forces as cutting
     a, R, f = 2.0, 5.0, 0.5
     tool = {"type": "ball", "diameter_mm": 10.0, "flutes": 2, "stickout_mm": 30.0}
     coeffs = {"ktc": 2000.0, "krc": 700.0, "kac": 300.0, "kte": 20.0, "kre": 15.0, "kae": 5.0}
@@ -147,7 +151,7 @@ def test_engagement_of_a_slot_matches_closed_form():
     r = np.sqrt(np.clip(R ** 2 - (R - z) ** 2, 0, None))
     crescent = (z[:, None] < a) & (r[:, None] * np.cos(np.radians(phi))[None] > -f / 2)
     rot = cutting.rotation_grid_deg(64)
-    F = cutting.cutting_forces(np.stack([E, crescent]), row["dz_mm"], f, tool, coeffs, rot)
+    F = cutting.cutting_forces(np.stack([E, crescent]), row["dz_mm"], f, Cutter.from_params({**tool, 'helix_deg': 0.0}), coeffs, rot)
     mean = F.mean(axis=1)
     print(f"\nslot mean force: engagement {np.round(mean[0], 2)} N, crescent {np.round(mean[1], 2)} N")
     assert np.allclose(F[0], F[1], atol=0.01 * np.abs(F[1]).max())
@@ -309,7 +313,7 @@ def _chain(points, motion=None):
     P = np.asarray(points, float)
     n = len(P) - 1
     mot = np.ones(n, np.int8) if motion is None else np.asarray(motion, np.int8)
-    return geo.PassGeometry("p", np.arange(n), mot, P[:-1].copy(), P[1:].copy(), np.full(n, 1000.0),
+    return PassGeometry("p", np.arange(n), mot, P[:-1].copy(), P[1:].copy(), np.full(n, 1000.0),
                             np.full(n, 1000.0))
 
 
@@ -325,7 +329,7 @@ def test_snapshot_leaves_out_the_straight_trailing_path_only():
            (10.41 + 0.3 * c8[0], y1 + 0.3 * c8[1], 0)]
     pg = _chain(pts, motion=[0, 1, 1, 1, 1, 1, 1])
     # a last chord after a 1 µm gap
-    pg = geo.PassGeometry("p", np.arange(8), np.r_[pg.motion, 1].astype(np.int8),
+    pg = PassGeometry("p", np.arange(8), np.r_[pg.motion, 1].astype(np.int8),
                           np.vstack([pg.p0, pg.p1[-1] + [0.001, 0, 0]]),
                           np.vstack([pg.p1, pg.p1[-1] + [0.001 + 0.3 * c8[0], 0.3 * c8[1], 0]]),
                           np.full(8, 1000.0), np.full(8, 1000.0))
@@ -354,7 +358,7 @@ def test_engagement_of_a_short_chord_is_that_of_the_cut(chord_mm):
     after it. Before ``snapshot_from`` the 10 µm chord's snapshot ended 5 µm behind its point and
     its engagement was lost within the render tolerance (no force).
     """
-    from stages import cutting
+    from stages.cutting import forces as cutting
     a, R, f = 0.05, 5.0, 0.05
     tool = {"type": "ball", "diameter_mm": 2 * R, "flutes": 2, "stickout_mm": 30.0}
     coeffs = {"ktc": 2000.0, "krc": 700.0, "kac": 300.0, "kte": 20.0, "kre": 15.0, "kae": 5.0}
@@ -385,7 +389,7 @@ def test_engagement_of_a_short_chord_is_that_of_the_cut(chord_mm):
         grids[pid] = E
     k = min(g.shape[0] for g in grids.values())
     rot = cutting.rotation_grid_deg(64)
-    F = cutting.cutting_forces(np.stack([grids[1][:k], grids[2][:k]]), rows[1]["dz_mm"], f, tool, coeffs, rot)
+    F = cutting.cutting_forces(np.stack([grids[1][:k], grids[2][:k]]), rows[1]["dz_mm"], f, Cutter.from_params({**tool, 'helix_deg': 0.0}), coeffs, rot)
     print(f"\nchord {chord_mm} mm: mean force {np.round(F[0].mean(0), 2)} N, long chord {np.round(F[1].mean(0), 2)} N")
     assert np.abs(F[1]).max() > 1.0
     assert np.allclose(F[0], F[1], atol=0.01 * np.abs(F[1]).max())
@@ -435,22 +439,22 @@ def test_a_turning_chain_drawn_in_one_draw_equals_its_passes_drawn_one_by_one():
     saw the stock top (on the sample, the earlier passes' surface, up to 0.15 mm too high)."""
     from stages.cut_filter import scan_tiles, z_range
     tool = {"type": "ball", "diameter_mm": 10, "flutes": 2, "stickout_mm": 30.0}
-    shape = geo.tool_from_params(tool)
+    shape = Cutter.from_params(tool)
     pts = [np.zeros(3)]
     for a in np.radians(np.arange(30, 61, 5)):
         pts.append(pts[-1] + 0.7 * np.array([-np.cos(a), 0.0, np.sin(a)]))
     pg = _chain(pts)
-    wp = geo.box_workpiece([-15, -10, -10, 10, 10, 3])
-    mesh = geo.envelope_mesh(shape, cut_filter.fine_tolerance(20))
+    wp = box_workpiece([-15, -10, -10, 10, 10, 3])
+    mesh = envelope_mesh(shape, cut_filter.fine_tolerance(20))
     zlo, zhi = z_range(pg, wp, shape)
     views, _ = scan_tiles(pg, shape, wp, 20.0, np.arange(len(pg.pass_id)), zlo, zhi)
     r = make_renderer("cpu")
 
     def final(group):
         n = len(pg.pass_id)
-        batches = (geo.ordered_sweep_scene(mesh, pg.p0[a:a + group], pg.p1[a:a + group], np.arange(a, min(n, a + group)))
+        batches = (ordered_sweep_scene(mesh, pg.p0[a:a + group], pg.p1[a:a + group], np.arange(a, min(n, a + group)))
                    for a in range(0, n, group))
-        return r.scan(views[0], geo.workpiece_scene(wp, views, -2.0), batches, n, 1).final.depth
+        return r.scan(views[0], workpiece_scene(wp, views, -2.0), batches, n, 1).final.depth
     one, each = final(len(pg.pass_id)), final(1)
     both = np.isfinite(one) & np.isfinite(each)
     assert both.sum() > 1000

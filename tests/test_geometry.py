@@ -4,8 +4,12 @@ import pytest
 from scipy.spatial import cKDTree
 
 from stages import InputError
-from stages import geometry as geo
-from stages.render import CPURenderer, View, make_scene
+from stages.geometry.cutter import Cutter
+from stages.geometry.envelope import envelope_mesh
+from stages.geometry.sweeps import chain_joints, ordered_sweep_scene, segment_scene, sweep_bands, sweep_lowest_z, sweep_triangles
+from stages.geometry.workpiece import DesignSurface, load_design_surface, load_workpiece
+from stages.render import View, make_scene
+from stages.render.cpu import CPURenderer
 
 TOOLS = {
     "ball": {"type": "ball", "diameter_mm": 10.0, "stickout_mm": 20.0},
@@ -29,8 +33,8 @@ def _profile_boundary(shape, n=200_000):
 @pytest.mark.parametrize("kind", sorted(TOOLS))
 @pytest.mark.parametrize("tol", [0.05, 0.005])
 def test_envelope_within_tolerance_and_inside(kind, tol):
-    shape = geo.tool_from_params(TOOLS[kind])
-    mesh = geo.envelope_mesh(shape, tol)
+    shape = Cutter.from_params(TOOLS[kind])
+    mesh = envelope_mesh(shape, tol)
     rng = np.random.default_rng(0)
     u = rng.random((len(mesh.tris), 4, 2))
     flip = u.sum(-1) > 1
@@ -52,16 +56,16 @@ def test_envelope_within_tolerance_and_inside(kind, tol):
 @pytest.mark.parametrize("kind", sorted(TOOLS))
 def test_sweep_from_below_matches_brute_force(kind):
     """Rendered lowest surface of a sweep = lower envelope of densely sampled tool positions."""
-    shape = geo.tool_from_params(TOOLS[kind])
+    shape = Cutter.from_params(TOOLS[kind])
     tol = 0.01
-    mesh = geo.envelope_mesh(shape, tol)
+    mesh = envelope_mesh(shape, tol)
     p0, p1 = np.array([-3.0, -2.0, 0.0]), np.array([4.0, 3.0, -1.5])   # inclined, diagonal
-    tris, q, _ = geo.sweep_triangles(mesh, p0[None], p1[None], view_dir=(0, 0, 1))
+    tris, q, _ = sweep_triangles(mesh, p0[None], p1[None], view_dir=(0, 0, 1))
     view = View((0.5, 0.5, 0.0), (0, 0, 1.0), (0, 1.0, 0), 22, 22, 10, -10, 30)
     im = CPURenderer().render([view], make_scene(tris, 0, 1, b=q))[0]
     rows, cols = np.nonzero(im.id >= 0)
     xy = view.pixel_points(rows, cols, 0 * rows)[:, :2]
-    ref = geo.sweep_lowest_z(shape, p0, p1, xy, n_t=4001)
+    ref = sweep_lowest_z(shape, p0, p1, xy, n_t=4001)
     # compare where the true surface is at most 60° steep (vertical error <= tol / cos 60°)
     zr = np.full(im.id.shape, np.nan)
     zr[rows, cols] = ref
@@ -73,7 +77,7 @@ def test_sweep_from_below_matches_brute_force(kind):
     assert err[gentle].min() >= -1e-3               # ... than the true sweep
     # the footprint is right: every pixel whose centre the brute force covers is drawn
     allpix = view.pixel_points(*np.indices(im.id.shape).reshape(2, -1), 0)[:, :2]
-    ref_all = geo.sweep_lowest_z(shape, p0, p1, allpix, n_t=801).reshape(im.id.shape)
+    ref_all = sweep_lowest_z(shape, p0, p1, allpix, n_t=801).reshape(im.id.shape)
     inside = np.isfinite(ref_all)
     assert np.mean((im.id >= 0) == inside) > 0.995
 
@@ -94,21 +98,21 @@ def test_turning_chain_from_below_matches_brute_force(builder, turn_deg):
     whole motion: no hole at any joint (a ray through a missing lune sees through the sweep) and
     never above the true surface, on a smooth chain (CAM chords at 4°) and at sharp corners.
     Reference: densely sampled tool positions, segment by segment."""
-    shape = geo.tool_from_params(TOOLS["ball"])
+    shape = Cutter.from_params(TOOLS["ball"])
     tol = 0.005
-    mesh = geo.envelope_mesh(shape, tol)
+    mesh = envelope_mesh(shape, tol)
     p0, p1 = _turning_chain(n=14 if turn_deg < 10 else 6, chord=0.7 if turn_deg < 10 else 2.0, turn_deg=turn_deg)
     k = len(p0)
-    drop0, drop1 = geo.chain_joints(p0, p1, np.zeros(k))
+    drop0, drop1 = chain_joints(p0, p1, np.zeros(k))
     assert drop1[:-1].all() and drop0[1:].all()                     # every joint is drawn as its lune
     if builder == "segment_scene":
-        sc = geo.segment_scene(mesh, p0, p1, np.zeros(k, np.int64), np.arange(k) + 1.0, (0, 0, 1.0))
+        sc = segment_scene(mesh, p0, p1, np.zeros(k, np.int64), np.arange(k) + 1.0, (0, 0, 1.0))
     else:
-        sc = geo.ordered_sweep_scene(mesh, p0, p1, np.arange(k) + 1.0)
+        sc = ordered_sweep_scene(mesh, p0, p1, np.arange(k) + 1.0)
     view = View((4.5, 2.0, 0.0), (0, 0, 1.0), (0, 1.0, 0), 22, 18, 10, -10, 30)
     im = CPURenderer().render([view], sc)[0]
     allpix = view.pixel_points(*np.indices(im.id.shape).reshape(2, -1), 0)[:, :2]
-    ref = np.min([geo.sweep_lowest_z(shape, a, b, allpix, n_t=301) for a, b in zip(p0, p1)], axis=0)
+    ref = np.min([sweep_lowest_z(shape, a, b, allpix, n_t=301) for a, b in zip(p0, p1)], axis=0)
     ref = ref.reshape(im.id.shape)
     inside = np.isfinite(ref)
     drawn = im.id >= 0
@@ -120,13 +124,13 @@ def test_turning_chain_from_below_matches_brute_force(builder, turn_deg):
     assert gentle.sum() > 10000
     assert err.max() <= 2 * tol + 2e-3 and err.min() >= -2e-3
     # and the point of leaving the copies out: far fewer triangles than a full copy per joint
-    full = geo.segment_scene(mesh, p0, p1, np.arange(k), np.arange(k) + 1.0, (0, 0, 1.0))
+    full = segment_scene(mesh, p0, p1, np.arange(k), np.arange(k) + 1.0, (0, 0, 1.0))
     assert len(sc.tris) < 0.6 * len(full.tris)
 
 
 def test_bands_vertical_plunge_and_zero_length():
-    mesh = geo.envelope_mesh(geo.tool_from_params(TOOLS["ball"]), 0.05)
-    t, q, o = geo.sweep_bands(mesh, [[0, 0, 5.0], [1, 1, 1.0]], [[0, 0, 0.0], [1, 1, 1.0]])
+    mesh = envelope_mesh(Cutter.from_params(TOOLS["ball"]), 0.05)
+    t, q, o = sweep_bands(mesh, [[0, 0, 5.0], [1, 1, 1.0]], [[0, 0, 0.0], [1, 1, 1.0]])
     assert len(t) > 0 and set(np.unique(o)) == {0}            # zero-length pass: no band
     # plunge: bands lie on the cylinder r = R (silhouette = equator)
     r = np.hypot(t[..., 0], t[..., 1])
@@ -135,10 +139,10 @@ def test_bands_vertical_plunge_and_zero_length():
 
 def test_tool_params_and_workpieces(tmp_path):
     with pytest.raises(InputError, match="corner_radius_mm"):
-        geo.tool_from_params({"type": "bull", "diameter_mm": 10, "corner_radius_mm": 6})
+        Cutter.from_params({"type": "bull", "diameter_mm": 10, "corner_radius_mm": 6})
     with pytest.raises(InputError, match="tool.type"):
-        geo.tool_from_params({"type": "drill", "diameter_mm": 10})
-    box = geo.load_workpiece({"box": [0, 0, -5, 10, 20, 0]})
+        Cutter.from_params({"type": "drill", "diameter_mm": 10})
+    box = load_workpiece({"box": [0, 0, -5, 10, 20, 0]})
     assert np.allclose(box.bounds, [[0, 0, -5], [10, 20, 0]])
     # outward normals: the top face points up
     top = box.tris[:, :, 2].min(1) > -1e-9
@@ -146,18 +150,18 @@ def test_tool_params_and_workpieces(tmp_path):
     import trimesh
     path = tmp_path / "s.stl"
     trimesh.creation.box(bounds=[[0, 0, -5], [10, 20, 0]]).export(path)
-    assert np.allclose(geo.load_workpiece(str(path)).bounds, box.bounds)
+    assert np.allclose(load_workpiece(str(path)).bounds, box.bounds)
     with pytest.raises(InputError, match="not found"):
-        geo.load_workpiece(str(tmp_path / "missing.stl"))
+        load_workpiece(str(tmp_path / "missing.stl"))
     with pytest.raises(InputError, match="stock"):
-        geo.load_workpiece(None)
+        load_workpiece(None)
 
 
 def test_design_surface_distance_matches_brute_force():
     import trimesh
     mesh = trimesh.creation.icosphere(subdivisions=3, radius=5.0)
     mesh.apply_translation([1.0, -2.0, 0.5])
-    ds = geo.DesignSurface(mesh, spacing_mm=0.2)
+    ds = DesignSurface(mesh, spacing_mm=0.2)
     rng = np.random.default_rng(3)
     p, f = trimesh.sample.sample_surface(mesh, 400, seed=4)
     q = p + rng.uniform(-0.5, 1.0, len(p))[:, None] * mesh.face_normals[f]
@@ -179,20 +183,20 @@ def test_design_surface_distance_matches_brute_force():
 
 
 def test_design_surface_load_errors(tmp_path):
-    assert geo.load_design_surface(None) is None
+    assert load_design_surface(None) is None
     with pytest.raises(InputError, match="not found"):
-        geo.load_design_surface(tmp_path / "missing.stl")
+        load_design_surface(tmp_path / "missing.stl")
     bad = tmp_path / "bad.stl"
     bad.write_text("solid x\nthis is not an stl\n")
     with pytest.raises(InputError, match="bad.stl"):
-        geo.load_design_surface(bad)
+        load_design_surface(bad)
 
 
 @pytest.mark.parametrize("kind,rc", [("ball", 3.0), ("bull", 1.0), ("flat", 0.0)])
 def test_tool_clearance_matches_a_dense_sample_of_the_body(kind, rc):
     """Distance and direction from the tool body against the nearest of ~200,000 points sampled on
     the body's surface (profile swept round the axis, flat end disk, shank to 20 mm)."""
-    shape = geo.ToolShape(kind, 3.0, rc, 40.0)
+    shape = Cutter(kind, 3.0, rc, 40.0)
     q = np.linspace(0, np.pi / 2, 200)
     prof = [np.stack([(3.0 - rc) + rc * np.sin(q), rc * (1 - np.cos(q))], 1)]
     prof.append(np.stack([np.full(200, 3.0), np.linspace(rc, 20.0, 200)], 1))

@@ -1,4 +1,4 @@
-"""Iterated correction in ``pipeline run`` (issue 5 deliver 2; DESIGN §7; pipeline/iterate.py).
+"""Iterated correction in ``pipeline run`` (DESIGN §7): the stage graph's repeated correction rounds.
 
 A small workflow through the whole chain on the seed's cylinder geometry (Ø20 ball, 0.63 mm pitch,
 three levels on the steep side where deflection leaves 10–20 µm): ``correct.max_iter: 3`` predicts again on
@@ -24,7 +24,7 @@ import yaml
 from click.testing import CliRunner
 
 from pipeline.cli import main
-from stages.parse import parse_program
+from stages.nc.reader import parse_program
 
 R, PITCH, DEPTH = 10.0, 0.63, 0.2
 DQ = np.radians(89.0 / 50)            # the Fig. 16 level spacing (tests/cylinder_case.py)
@@ -94,7 +94,7 @@ def _residual_um(errors, passes, passes0):
 
 
 def _virtual_machine_rms(stock, programs: dict) -> dict:
-    from stages.split import split_blocks
+    from stages.nc.moves import split_blocks
     from stages.virtual_machine import VirtualMachine
     tool = {"type": "ball", "diameter_mm": 20.0, "flutes": 2, "helix_deg": 30.0, "stickout_mm": 40.0,
             "runout_um": 0.0, "control_point": "tip"}
@@ -135,7 +135,7 @@ def test_iterated_correction_through_the_engine(tmp_path):
     # three rounds: predict again on the corrected path, correct again
     _run(_workflow(tmp_path, max_iter=3))
     summary = json.loads((out / "run.json").read_text())
-    rounds = summary["correct_rounds"]["cyl"]
+    rounds = summary["rounds"]["cyl"]
     corrected = pd.read_parquet(out / "tables" / "corrected")
     print("\nrounds: " + "; ".join(f"{r['round']}: predicted RMS {r['rms_err_um']:.3f} um (deviation from the original {r['rms_dev_um']:.3f}) on {r['n_errors']} passes, "
                                    f"max change {r['max_change_um']:.3f} um" for r in rounds))
@@ -198,8 +198,8 @@ def test_iterated_correction_through_the_engine(tmp_path):
 def test_errors_follow_their_pass_when_the_corrected_program_splits_differently():
     # the same blocks split into 5 mm and 2.5 mm passes: every error row of the fine split goes to
     # the coarse pass of the same block whose midpoint is nearest (brute force reference)
-    from stages.correct import errors_on_passes
-    from stages.split import split_blocks
+    from stages.correction.rounds import errors_on_passes
+    from stages.nc.moves import split_blocks
     import pyarrow as pa
     blocks, _ = parse_program(_program(), "cyl.nc", "cyl")
     base = {"machine": {"rapid_mm_min": 30000.0}, "tool": {"type": "ball", "diameter_mm": 20.0, "control_point": "tip"}}

@@ -10,8 +10,8 @@ from hypothesis import strategies as st
 
 import schemas
 from stages import InputError
-from stages.parse import parse_program
-from stages.split import split_blocks
+from stages.nc.reader import parse_program
+from stages.nc.moves import split_blocks
 from tests.ncprograms import raster_program
 
 PARAMS = {"split": {"chord_tol_mm": 0.001, "max_pass_mm": 5.0, "merge_max_mm": 0.5},

@@ -6,9 +6,10 @@ import numpy as np
 import pyarrow as pa
 import pytest
 
-from stages import errors, passage_envelope as pe
-from stages.parse import parse_program
-from stages.split import split_blocks
+from stages import errors
+from stages.cutting import passages as pe
+from stages.nc.reader import parse_program
+from stages.nc.moves import split_blocks
 
 TOOLS = {"ball": (5.0, 5.0), "bull": (5.0, 1.5), "flat": (5.0, 0.0)}
 STICK = 20.0
@@ -105,7 +106,6 @@ def test_short_pass_is_finished_by_the_deepest_neighbouring_passage(offset_um, b
     passes = _wall_program(offset_um)
     pid = passes.column("pass_id").to_numpy()
     x0, x1 = passes.column("x0_mm").to_numpy(), passes.column("x1_mm").to_numpy()
-    y0 = passes.column("y0_mm").to_numpy()
     mot = passes.column("motion").to_numpy()
     cut = (mot == 1) & (passes.column("z0_mm").to_numpy() == 0) & (passes.column("z1_mm").to_numpy() == 0)
     a = int(pid[cut & (x0 == 0) & (x1 == 10)][0])

@@ -9,7 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stages import cut_filter, generating, geometry as geo, parse, split
+from stages import cut_filter, generating, parse, split
+from stages.geometry.cutter import Cutter
+from stages.geometry.passes import pass_geometry
+from stages.geometry.workpiece import load_design_surface, load_workpiece
 from stages.render import make_renderer
 
 SAMPLES = Path(__file__).resolve().parents[1] / "data_samples"
@@ -30,12 +33,12 @@ def sample():
     path = SAMPLES / "nc" / "mould_finish_t1.nc"
     p = parse.run({"program_file": {"path": str(path), "program_id": "finish", "sha256": ""}}, {})
     passes = split.run(p, SPLIT)["passes"]
-    return passes, geo.load_workpiece(str(SAMPLES / "models" / "semi.stl"))
+    return passes, load_workpiece(str(SAMPLES / "models" / "semi.stl"))
 
 
 def test_gl_and_cpu_find_the_same_cutting_passes_on_the_sample_program(sample):
     passes, wp = sample
-    shape, pg = geo.tool_from_params(TOOL), geo.pass_geometry(passes, TOOL)
+    shape, pg = Cutter.from_params(TOOL), pass_geometry(passes, TOOL)
     res = {b: cut_filter.cut_filter(pg, shape, wp, r, 20.0) for b, r in
            (("gl", _gl()), ("cpu", make_renderer("cpu")))}
     g, c = res["gl"], res["cpu"]
@@ -49,7 +52,7 @@ def test_gl_and_cpu_find_the_same_cutting_passes_on_the_sample_program(sample):
 def test_gl_and_cpu_generating_points_agree_on_a_sample_window(sample):
     passes, wp = sample
     win = passes.slice(1500, 150)                 # a raster row over the pocket rim and wall
-    shape, pg = geo.tool_from_params(TOOL), geo.pass_geometry(win, TOOL)
+    shape, pg = Cutter.from_params(TOOL), pass_geometry(win, TOOL)
     out = {}
     for b, r in (("gl", _gl()), ("cpu", make_renderer("cpu"))):
         cf = cut_filter.cut_filter(pg, shape, wp, r, 20.0)
@@ -88,7 +91,7 @@ def test_generating_point_on_the_design_surface_in_a_pocket_corner(sample):
     it, they lie on the model, along its face normal there."""
     import trimesh
     passes, wp = sample
-    shape, pg = geo.tool_from_params(TOOL), geo.pass_geometry(passes, TOOL)
+    shape, pg = Cutter.from_params(TOOL), pass_geometry(passes, TOOL)
     r = _gl()
     cf = cut_filter.cut_filter(pg, shape, wp, r, 20.0)
     want = [4650, 4675, 4821, 4834]
@@ -98,7 +101,7 @@ def test_generating_point_on_the_design_surface_in_a_pocket_corner(sample):
     nominal = SAMPLES / "models" / "mould.stl"
     mesh = trimesh.load(str(nominal), force="mesh")
     engaged = {}
-    for design, on_model in ((None, False), (geo.load_design_surface(str(nominal)), True)):
+    for design, on_model in ((None, False), (load_design_surface(str(nominal)), True)):
         g, eng = generating.generating(pg, shape, wp, r, 20.0, idx, tips, 2, design=design)
         engaged[on_model] = [e[0] for e in eng]
         c = np.stack([g["gen_x_mm"], g["gen_y_mm"], g["gen_z_mm"]], 1)

@@ -25,9 +25,9 @@ import pytest
 
 from stages import correct, errors
 from stages import tool_profile as tp
-from stages.nc_writer import reverse_check, write_program
-from stages.parse import parse_program
-from stages.split import split_blocks
+from stages.nc.writer import reverse_check, write_program
+from stages.nc.reader import parse_program
+from stages.nc.moves import split_blocks
 
 R = 5.0
 N = np.array([1.0, 0.0, 1.0]) / np.sqrt(2.0)        # chamfer z = −x, outward normal (into air)
@@ -139,7 +139,9 @@ def test_seed_002_example_removed_by_the_corrected_program(tmp_path):
     assert np.allclose(err.column("err_shape_um").to_numpy(), e) and abs(e.mean() - comp.error_um.iloc[i45]) < 1e-4
 
     # the correct stage, the writer, the reverse check
-    cor = correct.run({"blocks": blocks, "passes": passes, "errors": err}, {"correct": {"max_move_um": 50.0}})["corrected"]
+    cor = correct.run({"blocks@first": blocks, "passes@first": passes, "passes": passes, "errors": err,
+                       "errors@first": err, "generating@first": None, "corrected@previous": None},
+                      {"correct": {"max_move_um": 50.0}})["corrected"]
     text = write_program(src, blocks, cor)
     assert reverse_check(text, blocks, cor)["ok"]
     new_blocks, _ = parse_program(text, "chamfer_corrected.nc", "chamfer")

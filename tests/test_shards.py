@@ -1,19 +1,19 @@
 """Stages run in shards: one program's stage as several Dask tasks, joined into one cache entry."""
 from __future__ import annotations
 
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
-import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 import yaml
 from distributed import Client
 
 from pipeline.cache import Cache
-from pipeline.engine import Run, _run_tasks, shard_key
+from pipeline.engine import Run
+from pipeline.executor import Executor, shard_key
+from pipeline.graph import Stage, mould_graph
 from tests import sharded_stage
 from tests.test_engine import BOX_PROGRAM, WF, run_cli
 
@@ -26,10 +26,10 @@ def client():
 
 def test_shards_are_joined_in_pass_order_and_a_failed_shard_fails_only_its_program(tmp_path, client):
     cache = Cache(tmp_path)
-    run = SimpleNamespace(cache=cache, task_inputs=lambda stage, part: {})
     good, bad = SimpleNamespace(program_id="good"), SimpleNamespace(program_id="bad")
-    recs = dict((p.program_id, r) for p, r in _run_tasks(client, sharded_stage, [(good, "k1", {}), (bad, "k2", {"fail": [1]})],
-                                                          run, progress=False))
+    todo = [(good, "k1", {}, {}), (bad, "k2", {"fail": [1]}, {})]
+    with Executor(progress=False, client=client) as ex:
+        recs = {p.program_id: r for p, _, r in ex.run(Stage.of(sharded_stage), todo, cache)}
     assert recs["good"]["ok"]
     t = cache.read("sharded_test", "k1", "angle_prune")
     assert t.column("pass_id").to_pylist() == list(range(10))           # every row once, in pass order
@@ -57,12 +57,13 @@ def test_generating_in_shards_equals_it_in_one_piece(tmp_path):
     assert generating.SHARDS > 1 and len(sharded) >= 10
     assert np.all(np.diff(sharded.pass_id) > 0)
 
-    run = Run(str(tmp_path / "wf.yaml"))
+    run = Run(str(tmp_path / "wf.yaml"), mould_graph())
     part = run.parts[0]
-    run.status()                                        # fills part.keys from the cache
-    inputs = {n: (pq.read_table(v) if kind == "table" else v)
-              for n, (kind, v) in run.task_inputs(generating, part).items()}
-    whole = generating.run(inputs, run.params_for(generating, part))["generating"].to_pandas()
+    run.status()                                        # finds the cached tables of the partition
+    stage = Stage.of(generating)
+    _, params, specs = run.plan(stage, part, 1)
+    inputs = {n: (pq.read_table(v) if kind == "table" else v) for n, (kind, v) in specs.items()}
+    whole = generating.run(inputs, params)["generating"].to_pandas()
     assert whole.pass_id.tolist() == sharded.pass_id.tolist()
     assert whole.view.tolist() == sharded.view.tolist()
     for c in ("gen_x_mm", "gen_y_mm", "gen_z_mm"):

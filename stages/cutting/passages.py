@@ -167,7 +167,7 @@ def passage_pairs(owner: np.ndarray, s_c: np.ndarray, reach: np.ndarray, s0: np.
     row, move : ndarray (K,) int, the point's row and the move
     ta, tb : ndarray (K,) the part of the move inside [s_c − reach, s_c + reach] (fractions)
     """
-    from stages.geometry import ragged_ranges
+    from stages.geometry.sweeps import ragged_ranges
     lo, hi = s_c - reach, s_c + reach
     # moves are in execution order, so s0 is non-decreasing: the moves overlapping [lo, hi]
     first = np.searchsorted(s0 + length, lo, side="left")

@@ -77,85 +77,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from stages.geometry.cutter import Cutter
+
 COEFF_NAMES = ("ktc", "krc", "kac", "kte", "kre", "kae")
 DEFAULT_N_ROT = 128
 
 
-# --------------------------------------------------------------------------------------------
-# tool envelope
-# --------------------------------------------------------------------------------------------
-def corner_radius_mm(tool: dict) -> float:
-    """Corner radius of the axisymmetric envelope: R for ball, corner_radius_mm for bull, 0 flat."""
-    radius = float(tool["diameter_mm"]) / 2
-    kind = tool["type"]
-    if kind == "ball":
-        return radius
-    if kind == "flat":
-        return 0.0
-    if kind == "bull":
-        return float(tool["corner_radius_mm"])
-    raise ValueError(f"tool.type: unknown tool type {kind!r} (ball, bull or flat)")
-
-
-def envelope_at_height(radius_mm: float, corner_mm: float, z_mm):
-    """Envelope radius r(z) and axial immersion angle κ(z) (rad) of an axisymmetric end mill.
-
-    Parameters
-    ----------
-    radius_mm : float
-        Tool radius R.
-    corner_mm : float
-        Corner radius rc (R for a ball, 0 for a flat end mill).
-    z_mm : array_like
-        Heights above the tip (≥ 0).
-
-    Returns
-    -------
-    r_mm, kappa_rad : ndarray
-        On the corner (z < rc): z = rc·(1 − cos κ), r = R − rc + rc·sin κ; above it κ = 90°, r = R.
-    """
-    z = np.asarray(z_mm, dtype=float)
-    if corner_mm <= 0:
-        return np.full_like(z, radius_mm), np.full_like(z, np.pi / 2)
-    zc = np.clip(z, 0.0, corner_mm)
-    kappa = np.arccos(1.0 - zc / corner_mm)
-    r = radius_mm - corner_mm + corner_mm * np.sin(kappa)
-    return r, kappa
-
-
-def generator_length_mm(radius_mm: float, corner_mm: float, z_mm):
-    """Arc length of the envelope generator from the tip's corner start up to height z."""
-    z = np.asarray(z_mm, dtype=float)
-    if corner_mm <= 0:
-        return np.maximum(z, 0.0)
-    zc = np.clip(z, 0.0, corner_mm)
-    return corner_mm * np.arccos(1.0 - zc / corner_mm) + np.maximum(z - corner_mm, 0.0)
-
-
-def corner_height_mm(corner_mm: float, contact_deg):
-    """Height above the tip of the corner point at contact angle q (q in degrees, ≤ 90)."""
-    q = np.radians(np.clip(np.asarray(contact_deg, dtype=float), 0.0, 90.0))
-    return corner_mm * (1.0 - np.cos(q))
-
-
-def helix_lag_deg(radius_mm: float, helix_deg: float, z_mm):
-    """Angular lag of the edge at height z behind its tip end: z·tan β / R (constant lead)."""
-    return np.degrees(np.asarray(z_mm, dtype=float) * np.tan(np.radians(helix_deg)) / radius_mm)
-
-
-def flute_offsets_mm(flutes: int, runout_um: float) -> np.ndarray:
-    """Radial offset ρ_j (mm) of each flute for an axis eccentricity ``runout_um`` towards flute 0."""
-    j = np.arange(int(flutes))
-    return (float(runout_um) * 1e-3) * np.cos(2 * np.pi * j / int(flutes))
-
-
-def spindle_angle_at(phi_deg, z_mm, flute, flutes: int, radius_mm: float, helix_deg: float):
+def spindle_angle_at(phi_deg, z_mm, flute, cutter: Cutter):
     """Spindle angle θ (deg, in [0, 360)) at which ``flute`` passes position angle φ at height z.
 
     Inverts φ_j(θ, z) = −θ − 360·j/N + lag(z) (see module docstring).
     """
-    theta = -np.asarray(phi_deg, dtype=float) - 360.0 * np.asarray(flute) / flutes \
-        + helix_lag_deg(radius_mm, helix_deg, z_mm)
+    theta = -np.asarray(phi_deg, dtype=float) - 360.0 * np.asarray(flute) / cutter.flutes \
+        + cutter.helix_lag_deg(z_mm)
     return np.mod(theta, 360.0)
 
 
@@ -208,17 +142,13 @@ class EdgeGrid:
     flutes: int
 
 
-def edge_grid(tool: dict, dz_mm: float, n_z: int) -> EdgeGrid:
-    """Micro-edges at the engagement grid's levels z_k = (k+0.5)·dz for ``tool`` (workflow dict)."""
-    radius = float(tool["diameter_mm"]) / 2
-    rc = corner_radius_mm(tool)
+def edge_grid(cutter: Cutter, dz_mm: float, n_z: int) -> EdgeGrid:
+    """Micro-edges at the engagement grid's levels z_k = (k+0.5)·dz of ``cutter``."""
     z = (np.arange(n_z) + 0.5) * dz_mm
-    _, kappa = envelope_at_height(radius, rc, z)
-    edges = np.arange(n_z + 1) * dz_mm
-    s = generator_length_mm(radius, rc, edges)
-    return EdgeGrid(z_mm=z, kappa_rad=kappa, ds_mm=np.diff(s),
-                    lag_deg=helix_lag_deg(radius, float(tool.get("helix_deg") or 0.0), z),
-                    radius_mm=radius, flutes=int(tool["flutes"]))
+    _, kappa = cutter.immersion(z)
+    s = cutter.generator_length(np.arange(n_z + 1) * dz_mm)
+    return EdgeGrid(z_mm=z, kappa_rad=kappa, ds_mm=np.diff(s), lag_deg=cutter.helix_lag_deg(z),
+                    radius_mm=cutter.radius_mm, flutes=cutter.flutes)
 
 
 def rotation_grid_deg(n_rot: int = DEFAULT_N_ROT) -> np.ndarray:
@@ -295,7 +225,8 @@ def force_weights(grid: EdgeGrid, n_phi: int, fz_mm: float, coeffs: dict, rotati
     phi = flute_positions_deg(grid, rotation_deg)                   # (n_rot, N, n_z)
     phi_rad = np.radians(phi)
     cos_phi, sin_phi = np.cos(phi_rad), np.sin(phi_rad)
-    rho = flute_offsets_mm(grid.flutes, runout_um)
+    j = np.arange(grid.flutes)
+    rho = (float(runout_um) * 1e-3) * np.cos(2 * np.pi * j / grid.flutes)
     h = chip_thickness_mm(fz_mm, cos_phi, np.sin(grid.kappa_rad), rho, ramp_deg)
     f = edge_force_components(cos_phi, sin_phi, grid.kappa_rad, grid.ds_mm, h, coeffs)
     bins = np.minimum((phi * (n_phi / 360.0)).astype(np.int64), n_phi - 1)
@@ -331,7 +262,7 @@ def _gather_matmul(packed: np.ndarray, cells: np.ndarray, weights: np.ndarray, o
         out[:, rows[s:s + chunk], :] = f
 
 
-def cutting_forces(engaged: np.ndarray, dz_mm: float, fz_mm, tool: dict, coeffs: dict,
+def cutting_forces(engaged: np.ndarray, dz_mm: float, fz_mm, cutter: Cutter, coeffs: dict,
                    rotation_deg=None, ramp_deg=0.0) -> np.ndarray:
     """Forces on the tool over one revolution for passes sharing one engagement grid.
 
@@ -343,8 +274,7 @@ def cutting_forces(engaged: np.ndarray, dz_mm: float, fz_mm, tool: dict, coeffs:
         Level spacing of the grid.
     fz_mm : float or ndarray (P,)
         Feed per tooth of each pass.
-    tool : dict
-        Workflow tool (type, diameter_mm, flutes, helix_deg, corner_radius_mm, runout_um).
+    cutter : :class:`stages.geometry.cutter.Cutter` (its runout sets the flutes' offsets)
     coeffs : dict
         ktc, krc, kac (N/mm²), kte, kre, kae (N/mm).
     rotation_deg : array_like, optional
@@ -361,13 +291,13 @@ def cutting_forces(engaged: np.ndarray, dz_mm: float, fz_mm, tool: dict, coeffs:
     engaged = np.asarray(engaged, dtype=bool)
     n_pass, n_z, n_phi = engaged.shape
     packed = np.packbits(engaged.reshape(n_pass, -1), axis=1)
-    return cutting_forces_packed(packed, n_z, n_phi, dz_mm, fz_mm, tool, coeffs, rotation_deg, ramp_deg)
+    return cutting_forces_packed(packed, n_z, n_phi, dz_mm, fz_mm, cutter, coeffs, rotation_deg, ramp_deg)
 
 
 RAMP_STEP_DEG = 0.5     # passes are grouped by ramp angle to this step (h changes by < fz·0.005)
 
 
-def cutting_forces_packed(packed: np.ndarray, n_z: int, n_phi: int, dz_mm: float, fz_mm, tool: dict,
+def cutting_forces_packed(packed: np.ndarray, n_z: int, n_phi: int, dz_mm: float, fz_mm, cutter: Cutter,
                           coeffs: dict, rotation_deg=None, ramp_deg=0.0) -> np.ndarray:
     """``cutting_forces`` on grids given as packed bits (P, ceil(n_z·n_phi/8)) uint8, the form the
     ``engagement`` table stores; memory stays O(chunk), whatever P and the grid size. Passes are
@@ -376,7 +306,7 @@ def cutting_forces_packed(packed: np.ndarray, n_z: int, n_phi: int, dz_mm: float
     n_pass = packed.shape[0]
     ramp = np.round(np.broadcast_to(np.asarray(ramp_deg, dtype=float), (n_pass,)) / RAMP_STEP_DEG)
     if n_pass == 0 or np.all(ramp == ramp[0]):
-        return _forces_one_ramp(packed, n_z, n_phi, dz_mm, fz_mm, tool, coeffs, rotation_deg,
+        return _forces_one_ramp(packed, n_z, n_phi, dz_mm, fz_mm, cutter, coeffs, rotation_deg,
                                 float(ramp[0]) * RAMP_STEP_DEG if n_pass else 0.0)
     fz = np.broadcast_to(np.asarray(fz_mm, dtype=float), (n_pass,))
     theta = rotation_grid_deg() if rotation_deg is None else np.asarray(rotation_deg, dtype=float)
@@ -384,12 +314,12 @@ def cutting_forces_packed(packed: np.ndarray, n_z: int, n_phi: int, dz_mm: float
     uniq, inv = np.unique(ramp, return_inverse=True)
     for g, value in enumerate(uniq):
         sel = np.flatnonzero(inv.ravel() == g)
-        comp[:, sel] = np.moveaxis(_forces_one_ramp(packed[sel], n_z, n_phi, dz_mm, fz[sel], tool, coeffs,
+        comp[:, sel] = np.moveaxis(_forces_one_ramp(packed[sel], n_z, n_phi, dz_mm, fz[sel], cutter, coeffs,
                                                     theta, float(value) * RAMP_STEP_DEG), -1, 0)
     return np.moveaxis(comp, 0, -1)
 
 
-def _forces_one_ramp(packed, n_z, n_phi, dz_mm, fz_mm, tool, coeffs, rotation_deg, ramp_deg):
+def _forces_one_ramp(packed, n_z, n_phi, dz_mm, fz_mm, cutter, coeffs, rotation_deg, ramp_deg):
     packed = np.asarray(packed, dtype=np.uint8)
     n_pass = packed.shape[0]
     if packed.ndim != 2 or packed.shape[1] != (n_z * n_phi + 7) // 8:
@@ -407,7 +337,7 @@ def _forces_one_ramp(packed, n_z, n_phi, dz_mm, fz_mm, tool, coeffs, rotation_de
     active = np.flatnonzero(union.any(axis=1))
     if active.size == 0:
         return out
-    full = edge_grid(tool, dz_mm, n_z)
+    full = edge_grid(cutter, dz_mm, n_z)
     grid = EdgeGrid(full.z_mm[active], full.kappa_rad[active], full.ds_mm[active],
                     full.lag_deg[active], full.radius_mm, full.flutes)
 
@@ -418,7 +348,7 @@ def _forces_one_ramp(packed, n_z, n_phi, dz_mm, fz_mm, tool, coeffs, rotation_de
         cells = level * n_phi + cells_local % n_phi
         return w, cells
 
-    runout = float(tool.get("runout_um") or 0.0)
+    runout = cutter.runout_um
     if runout == 0.0:
         # without runout the force is linear in fz: F = fz·F(cutting, fz=1) + F(edge)
         zero = {"ktc": 0.0, "krc": 0.0, "kac": 0.0, "kte": 0.0, "kre": 0.0, "kae": 0.0}

@@ -35,7 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
-from stages import InputError, read_numeric_csv
+from stages import InputError
+from stages.tables import read_numeric_csv
 
 FRF_COLUMNS = ("freq_hz", "xx_re", "xx_im", "yy_re", "yy_im")
 

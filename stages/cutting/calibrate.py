@@ -29,8 +29,15 @@ from pathlib import Path
 
 import numpy as np
 
-from stages import InputError, read_numeric_csv
-from stages import cutting
+from stages import InputError
+from stages.cutting.forces import (
+    COEFF_NAMES,
+    cutting_forces,
+    feed_per_tooth_mm,
+    to_machine_frame,
+)
+from stages.geometry.cutter import Cutter
+from stages.tables import read_numeric_csv
 
 
 @dataclass
@@ -59,7 +66,7 @@ def read_force_csv(path) -> tuple[np.ndarray, np.ndarray]:
     return a[:, 0], a[:, 1:4]
 
 
-def engagement_for_cut(tool: dict, axial_depth_mm: float, radial_width_mm: float | None = None,
+def engagement_for_cut(cutter: Cutter, axial_depth_mm: float, radial_width_mm: float | None = None,
                        side: str = "right", n_z: int = 64, n_phi: int = 720) -> tuple[np.ndarray, float]:
     """Cutting region of a straight calibration cut into a block (slot when the width ≥ diameter).
 
@@ -71,11 +78,10 @@ def engagement_for_cut(tool: dict, axial_depth_mm: float, radial_width_mm: float
     -------
     engaged : bool (n_z, n_phi), dz_mm : float
     """
-    radius = float(tool["diameter_mm"]) / 2
-    rc = cutting.corner_radius_mm(tool)
+    radius = cutter.radius_mm
     dz = axial_depth_mm / n_z
     z = (np.arange(n_z) + 0.5) * dz
-    r, _ = cutting.envelope_at_height(radius, rc, z)
+    r, _ = cutter.immersion(z)
     phi = np.radians((np.arange(n_phi) + 0.5) * 360.0 / n_phi)
     y = r[:, None] * np.sin(phi)[None, :]
     front = np.cos(phi)[None, :] > 0
@@ -91,19 +97,19 @@ def engagement_for_cut(tool: dict, axial_depth_mm: float, radial_width_mm: float
     return inside & front, dz
 
 
-def basis_forces(record: ForceRecord, tool: dict) -> np.ndarray:
+def basis_forces(record: ForceRecord, cutter: Cutter) -> np.ndarray:
     """Model force with each coefficient = 1 in turn: (6, n, 3), machine frame, on the tool."""
     out = []
-    for name in cutting.COEFF_NAMES:
-        coeffs = {k: (1.0 if k == name else 0.0) for k in cutting.COEFF_NAMES}
-        f = cutting.cutting_forces(record.engaged[None], record.dz_mm, record.fz_mm, tool, coeffs,
-                                   rotation_deg=record.rotation_deg)
-        f = cutting.to_machine_frame(f, np.array([record.feed_dir[0]]), np.array([record.feed_dir[1]]))
+    for name in COEFF_NAMES:
+        coeffs = {k: (1.0 if k == name else 0.0) for k in COEFF_NAMES}
+        f = cutting_forces(record.engaged[None], record.dz_mm, record.fz_mm, cutter, coeffs,
+                           rotation_deg=record.rotation_deg)
+        f = to_machine_frame(f, np.array([record.feed_dir[0]]), np.array([record.feed_dir[1]]))
         out.append(f[0])
     return np.stack(out)
 
 
-def fit_coefficients(records: list[ForceRecord], tool: dict) -> dict:
+def fit_coefficients(records: list[ForceRecord], cutter: Cutter) -> dict:
     """Least-squares fit of the six coefficients to the records.
 
     Returns
@@ -118,7 +124,7 @@ def fit_coefficients(records: list[ForceRecord], tool: dict) -> dict:
         raise ValueError("no force records to fit")
     blocks, rhs, spans = [], [], []
     for rec in records:
-        b = basis_forces(rec, tool)                                         # (6, n, 3)
+        b = basis_forces(rec, cutter)                                        # (6, n, 3)
         meas = np.asarray(rec.force_n, dtype=float)
         if rec.forces_on == "workpiece":
             meas = -meas
@@ -146,14 +152,14 @@ def fit_coefficients(records: list[ForceRecord], tool: dict) -> dict:
         per.append({"name": name, "r2": r2, "rms_n": rms})
         all_meas.append(meas.reshape(-1, 3) - meas.reshape(-1, 3).mean(axis=0))
     ss_tot = float(sum((m ** 2).sum() for m in all_meas))
-    out = {k: float(v) for k, v in zip(cutting.COEFF_NAMES, sol)}
+    out = {k: float(v) for k, v in zip(COEFF_NAMES, sol)}
     out.update({"r2": 1.0 - float((res ** 2).sum()) / ss_tot if ss_tot > 0 else float("nan"),
                 "rms_n": float(np.sqrt(np.mean(res ** 2))), "n_samples": int(len(y) // 3),
                 "rank": int(rank), "per_record": per})
     return out
 
 
-def calibrate_from_csv(paths, cuts: list[dict], tool: dict, forces_on: str = "tool") -> dict:
+def calibrate_from_csv(paths, cuts: list[dict], cutter: Cutter, forces_on: str = "tool") -> dict:
     """Fit coefficients to force CSVs, one cut description per file.
 
     Each cut is a dict: ``axial_depth_mm``, ``radial_width_mm`` (None = slot), ``side``,
@@ -162,9 +168,9 @@ def calibrate_from_csv(paths, cuts: list[dict], tool: dict, forces_on: str = "to
     records = []
     for path, cut in zip(paths, cuts):
         theta, force = read_force_csv(path)
-        engaged, dz = engagement_for_cut(tool, cut["axial_depth_mm"], cut.get("radial_width_mm"),
+        engaged, dz = engagement_for_cut(cutter, cut["axial_depth_mm"], cut.get("radial_width_mm"),
                                          cut.get("side", "right"))
-        fz = float(cutting.feed_per_tooth_mm(cut["feed_mm_min"], cut["spindle_rpm"], int(tool["flutes"])))
+        fz = float(feed_per_tooth_mm(cut["feed_mm_min"], cut["spindle_rpm"], cutter.flutes))
         records.append(ForceRecord(theta, force, engaged, dz, fz, tuple(cut.get("feed_dir", (1.0, 0.0))),
                                    name=str(path), forces_on=forces_on))
-    return fit_coefficients(records, tool)
+    return fit_coefficients(records, cutter)

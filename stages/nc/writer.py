@@ -15,21 +15,6 @@ the first ``%``) says what changed; it carries no date so the output is determin
 (count, order, motion kinds, planes) at the new coordinates. :func:`write_ln_program` writes the
 corrected path as Heidenhain-style ``LN`` blocks with surface normals, :func:`write_comp_table` a
 contact-angle compensation table (radius deviation per angle, like a 3D-ToolComp ``.3DTC`` file).
-
-Via points (``correct.via_points``, off by default): a straight cut longer than the split stage's
-``max_pass_mm`` is split into several passes whose errors differ along it (on the sample mould a
-20 mm climb of a pocket wall beside a corner: 193, 111, 72, 62, 26 µm bottom up), but a program
-whose coordinates alone change can only move its two ends, so the middle passes are moved by the
-straight interpolation of the end moves. :func:`via_blocks` cuts such a block into the split
-stage's pieces in the ``blocks`` table (the parse stage does it when the option is on: the passes
-stay the same, the correct stage then moves every piece's end); :func:`write_program` writes the
-moved piece ends as ``G1 X Y Z`` lines inserted before the block's own line, only where they leave
-the straight line between the written ends by more than the output grid, so a program without
-error still comes out byte-identical. Only absolute metric G1 lines with no words but N, G1, X, Y,
-Z and F are cut (an inserted line must not repeat an M, S, T or G code, and an F word moves onto
-the first inserted line). Given the chord tolerance, plain arcs are cut too, at the split stage's
-chords: the chords before the last become G1 pieces, the last stays the arc (its centre); they are
-written whenever a point of the arc moves, since the correct stage refits only that last chord's arc.
 """
 from __future__ import annotations
 
@@ -38,164 +23,36 @@ import hashlib
 import numpy as np
 import pyarrow as pa
 
-from stages.parse import (_BLANK, _CLASS, _CLOSE, _LETTER, _NL, _NUM, _OPEN, _SEMI, _UPPER, INCH_MM, _Errors,
-                          _numbers, parse_program)
+from stages.nc.lexer import (
+    BLANK,
+    CLASS,
+    CLOSE,
+    INCH_MM,
+    LETTER,
+    NL,
+    NUM,
+    OPEN,
+    SEMI,
+    UPPER,
+    Problems,
+    numbers,
+)
+from stages.nc.reader import parse_program
+from stages.tables import col
 
 _AXES = "XYZ"
+
+
 _ARC = "IJK"
+
+
 _ORDER = "NGXYZIJKR"          # where an added word goes: after the last word of an earlier letter
-_PLANE_AXES = {17: (0, 1), 18: (2, 0), 19: (1, 2)}   # in-plane axes (first, second) as the parser
 
 
-def _table_np(table: pa.Table, name: str, dtype=float):
-    return table.column(name).to_numpy(zero_copy_only=False).astype(dtype)
+PLANE_AXES = {17: (0, 1), 18: (2, 0), 19: (1, 2)}   # in-plane axes (first, second) as the parser
 
 
-_VIA_LETTERS = frozenset(b"NGXYZF")
-
-
-def via_blocks(data: bytes, blocks: pa.Table, max_mm: float, chord_tol_mm: float | None = None,
-               corner_via_mm: float = 0.0) -> pa.Table:
-    """``blocks`` with every long plain G1 line cut into the split stage's equal pieces, and with
-    ``chord_tol_mm`` every plain arc into the split stage's chords.
-
-    Parameters
-    ----------
-    data : the program bytes ``blocks`` was parsed from
-    blocks : its ``blocks`` table (one row per block, one block per line)
-    max_mm : ``split.max_pass_mm``: a line of length L becomes ceil(L / max_mm) blocks, exactly the
-        pieces :func:`stages.split.split_long` makes, so the passes do not change
-    chord_tol_mm : ``split.chord_tol_mm``; None: arcs are not cut. An absolute metric arc (G2/G3
-        word on its own line, no words but N, G, X, Y, Z, I, J, K, R, F; G words only 2, 3, 17,
-        18, 19) of two or more chords becomes its chords as G1 pieces, the last chord staying the
-        arc (same centre): one arc refitted through its moved ends cannot follow an error that
-        changes along it (the sample boss's contour: +35 µm on one side, +7 µm a quarter turn on)
-    corner_via_mm : ``correct.corner_via_mm``: a line's piece at a path corner (a G1 line meeting
-        another, :func:`stages.split.corner_ends`) at least twice this long is cut this far from
-        the corner, and the cut is marked ``via_only``: the split stage keeps the two blocks one
-        pass, so the passes do not change, but the corner vertex's move (for both passes) no
-        longer drags the piece's body with it (once the moves have taken the via point off the
-        line, the split of the corrected program has a pass boundary there)
-
-    Returns
-    -------
-    ``blocks`` table: the pieces of a cut line or arc share its ``line_no`` (every piece but the
-    last is a via point :func:`write_program` may insert); ``block_no`` is renumbered in order.
-    """
-    n = blocks.num_rows
-    if n == 0 or max_mm <= 0:
-        return blocks
-    motion = _table_np(blocks, "motion", np.int64)
-    line = _table_np(blocks, "line_no", np.int64) - 1
-    p0 = np.stack([_table_np(blocks, c) for c in ("x0_mm", "y0_mm", "z0_mm")], 1)
-    p1 = np.stack([_table_np(blocks, c) for c in ("x1_mm", "y1_mm", "z1_mm")], 1)
-    from stages.split import corner_ends, split_long
-    length = np.linalg.norm(p1 - p0, axis=1)
-    k = np.ceil(length / max_mm - 1e-9).astype(np.int64)
-    pieces = k > 1
-    if corner_via_mm > 0:                        # the lines that get a via point at a corner
-        cv_start, cv_end = corner_ends(p0, p1, motion == 1)
-        pieces |= (cv_start | cv_end) & (length >= 2 * corner_via_mm * (1 - 1e-9))
-    plain = ~_table_np(blocks, "incremental", bool) & ~_table_np(blocks, "inch", bool)
-    # one block on the line
-    plain &= np.bincount(line, minlength=line.max() + 1)[line] == 1
-    cut = (motion == 1) & pieces & plain
-    is_arc = (motion == 2) | (motion == 3)
-    arc_cut = is_arc & plain if chord_tol_mm else np.zeros(n, bool)
-    if cut.any() or arc_cut.any():
-        sc = _scan(data)
-        letter, w_line = sc["letter"], sc["line"]
-        n_lines = int(max(line.max(), w_line.max() if w_line.size else 0)) + 1
-        g = letter == ord("G")
-        gval = np.where(g, _small_int(data, sc["vstart"], sc["vend"]), -1)
-        # lines: only words an inserted line may carry; G words only G1 / G01 (a G90, G41 … on the
-        # line would be repeated or lost)
-        bad = ~np.isin(letter, np.frombuffer(bytes(_VIA_LETTERS), np.uint8)) | (g & (gval != 1))
-        bad_line = np.bincount(w_line[bad], minlength=n_lines) > 0
-        cut &= ~bad_line[line]
-        if arc_cut.any():
-            # arcs: also the arc words, and the line's own G2/G3 (the inserted G1 lines before it
-            # would otherwise change the motion it takes from the line before); a plane word
-            # applies from the arc line on, after the inserted lines, as in the source
-            bad = (~np.isin(letter, np.frombuffer(bytes(_VIA_LETTERS) + b"IJKR", np.uint8))
-                   | (g & ~np.isin(gval, (2, 3, 17, 18, 19))))
-            own_g = np.bincount(w_line[g & np.isin(gval, (2, 3))], minlength=n_lines) > 0
-            arc_cut &= ~(np.bincount(w_line[bad], minlength=n_lines) > 0)[line] & own_g[line]
-    if not (cut.any() or arc_cut.any()):
-        return blocks
-    idx, q0, q1, _ = split_long(np.arange(n), p0, p1, cut, max_mm)
-    via_only = np.zeros(idx.size, bool)
-    if corner_via_mm > 0 and cut.any():
-        idx, q0, q1, via_only = _corner_vias(idx, q0, q1, cut & cv_start, cut & cv_end, corner_via_mm)
-    motion_out, plane_out = motion[idx], _table_np(blocks, "plane", np.int64)[idx]
-    centre = np.stack([_table_np(blocks, c) for c in ("cx_mm", "cy_mm", "cz_mm")], 1)[idx]
-    r = np.flatnonzero(arc_cut[idx])
-    if r.size:
-        from stages.split import arc_chords
-        a_owner, a0, a1 = arc_chords(q0[r], q1[r], centre[r], plane_out[r], motion_out[r] == 3, chord_tol_mm)
-        k = np.bincount(a_owner, minlength=r.size)
-        rep = np.ones(idx.size, np.int64)
-        rep[r] = k
-        slot = np.repeat(np.arange(idx.size), rep)
-        first = (np.cumsum(rep) - rep)[r]
-        at = first[a_owner] + np.arange(a_owner.size) - np.repeat(np.cumsum(k) - k, k)
-        # the chords before the last are G1 pieces, written (if at all) before the arc's line:
-        # they take the plane the control holds before that line
-        piece = np.zeros(slot.size, bool)
-        piece[at] = True
-        piece[(first + k - 1)] = False
-        prev_plane = np.where(slot > 0, plane_out[np.maximum(slot - 1, 0)], plane_out[slot])
-        idx, q0, q1, via_only = idx[slot], q0[slot], q1[slot], via_only[slot]
-        q0[at], q1[at] = a0, a1
-        motion_out, plane_out, centre = motion_out[slot], plane_out[slot], centre[slot]
-        motion_out[piece] = 1
-        plane_out[piece] = prev_plane[piece]
-        centre[piece] = np.nan
-    out = blocks.take(pa.array(idx))
-    cols = dict(zip(("x0_mm", "y0_mm", "z0_mm", "x1_mm", "y1_mm", "z1_mm"), (*q0.T, *q1.T)))
-    cols["block_no"] = np.arange(1, idx.size + 1, dtype=np.int32)
-    cols["motion"], cols["plane"] = motion_out, plane_out
-    if "via_only" in out.column_names:
-        cols["via_only"] = via_only
-    for j, c in enumerate(("cx_mm", "cy_mm", "cz_mm")):
-        cols[c] = pa.array(centre[:, j], pa.float64(), mask=np.isnan(centre[:, j]))
-    for name, val in cols.items():
-        i = out.schema.get_field_index(name)
-        f = out.schema.field(name)
-        out = out.set_column(i, f, val if isinstance(val, pa.Array) else pa.array(val, f.type))
-    return out
-
-
-def _corner_vias(idx, q0, q1, at_start, at_end, d):
-    """Cut the first piece of a line starting at a corner (``at_start`` per line) and the last
-    piece of one ending at a corner ``d`` from the corner, where the piece is long enough (2d,
-    3d with both). Returns (idx, q0, q1, via_only): ``via_only`` marks the pieces whose end is
-    such a cut."""
-    new_line = np.concatenate(([True], idx[1:] != idx[:-1]))
-    last = np.concatenate((idx[1:] != idx[:-1], [True]))
-    seg = q1 - q0
-    plen = np.linalg.norm(seg, axis=1)
-    cs = new_line & at_start[idx]
-    ce = last & at_end[idx]
-    fits = plen >= d * (1 + cs + ce) * (1 - 1e-9)
-    cs, ce = cs & fits, ce & fits
-    rep = 1 + cs.astype(np.int64) + ce
-    src = np.repeat(np.arange(idx.size), rep)
-    j = np.arange(src.size) - np.repeat(np.cumsum(rep) - rep, rep)
-    # distances of the cuts from the piece's start: [0, d (start corner), L − d (end corner), L]
-    cuts = np.zeros((idx.size, 4))
-    cuts[:, 1] = np.where(cs, d, plen)
-    cuts[:, 2] = np.where(ce, plen - d, plen)
-    cuts[:, 3] = plen
-    # the k-th boundary of a piece: its distinct cut distances in order
-    bounds = np.sort(np.where(np.arange(4)[None, :] <= rep[:, None], cuts, np.inf), axis=1)
-    u = seg / np.where(plen > 0, plen, 1.0)[:, None]
-    a = q0[src] + u[src] * bounds[src, j][:, None]
-    b = np.where((j + 1 == rep[src])[:, None], q1[src], q0[src] + u[src] * bounds[src, j + 1][:, None])
-    return idx[src], a, b, j + 1 < rep[src]
-
-
-def _small_int(data: bytes, vstart, vend) -> np.ndarray:
+def small_ints(data: bytes, vstart, vend) -> np.ndarray:
     """Value of words written as 1–3 plain digits (G1, G01, G17), −1 for any other text."""
     raw = np.frombuffer(data, np.uint8)
     vlen = vend - vstart
@@ -216,12 +73,12 @@ def _via_rows(corrected: pa.Table):
     written when any of its points (its start included) moves on that grid: the arc's refitted
     centre is that of its last chord, which is the whole arc only when nothing moved."""
     n = corrected.num_rows
-    line = _table_np(corrected, "line_no", np.int64)
+    line = col(corrected, "line_no", np.int64)
     via = np.zeros(n, bool)
     via[:-1] = line[:-1] == line[1:]
     if not via.any():
         return via, via
-    new = np.stack([_table_np(corrected, c) for c in ("x_new_mm", "y_new_mm", "z_new_mm")], 1)
+    new = np.stack([col(corrected, c) for c in ("x_new_mm", "y_new_mm", "z_new_mm")], 1)
     # the written ends: the row before the line's first piece and the line's own row
     group = np.cumsum(np.concatenate(([True], line[1:] != line[:-1]))) - 1
     g_first = np.flatnonzero(np.concatenate(([True], group[1:] != group[:-1])))
@@ -233,9 +90,9 @@ def _via_rows(corrected: pa.Table):
     dev = np.linalg.norm(a + ab * np.clip(t, 0, 1)[:, None] - new, axis=1)
     off = np.zeros(g_first.size, bool)
     np.logical_or.at(off, group, via & (dev > 0.5e-3))
-    arc = np.isin(_table_np(corrected, "motion", np.int64)[g_last], (2, 3))
+    arc = np.isin(col(corrected, "motion", np.int64)[g_last], (2, 3))
     if arc.any():
-        orig = np.stack([_table_np(corrected, c) for c in ("x_mm", "y_mm", "z_mm")], 1)
+        orig = np.stack([col(corrected, c) for c in ("x_mm", "y_mm", "z_mm")], 1)
         moved = np.linalg.norm(new - orig, axis=1) > 0.5e-3
         any_moved = np.zeros(g_first.size, bool)
         np.logical_or.at(any_moved, group, moved)
@@ -266,22 +123,22 @@ def write_program(data: bytes, blocks: pa.Table, corrected: pa.Table, *, source_
         corrected = corrected.filter(pa.array(~via | via_w))
         via = via_w[~via | via_w]
     lines = data.split(b"\n")
-    bno = _table_np(blocks, "block_no", np.int64)
-    cbn = _table_np(corrected, "block_no", np.int64)
+    bno = col(blocks, "block_no", np.int64)
+    cbn = col(corrected, "block_no", np.int64)
     rows = np.searchsorted(bno, cbn)
     if np.any(rows >= bno.size) or np.any(bno[np.minimum(rows, bno.size - 1)] != cbn):
         raise ValueError("corrected: block numbers not found in blocks (different program?)")
-    line_idx = _table_np(corrected, "line_no", np.int64) - 1
-    motion = _table_np(corrected, "motion", np.int64)
-    inch = _table_np(blocks, "inch", bool)[rows]
-    incr = _table_np(blocks, "incremental", bool)[rows]
-    plane = _table_np(blocks, "plane", np.int64)[rows]
+    line_idx = col(corrected, "line_no", np.int64) - 1
+    motion = col(corrected, "motion", np.int64)
+    inch = col(blocks, "inch", bool)[rows]
+    incr = col(blocks, "incremental", bool)[rows]
+    plane = col(blocks, "plane", np.int64)[rows]
     scale = np.where(inch, INCH_MM, 1.0)
-    target = np.stack([_table_np(corrected, c) for c in ("x_new_mm", "y_new_mm", "z_new_mm")], 1)
-    centre = np.stack([_table_np(corrected, c) for c in ("cx_new_mm", "cy_new_mm", "cz_new_mm")], 1)
+    target = np.stack([col(corrected, c) for c in ("x_new_mm", "y_new_mm", "z_new_mm")], 1)
+    centre = np.stack([col(corrected, c) for c in ("cx_new_mm", "cy_new_mm", "cz_new_mm")], 1)
     n = cbn.size
 
-    sc = _scan(data)
+    sc = scan_words(data)
     # words of the motion lines: row of each word (−1: not a motion line)
     line_row = np.full(len(lines) + 1, -1, np.int64)
     line_row[line_idx[~via]] = np.flatnonzero(~via)
@@ -348,7 +205,7 @@ def write_program(data: bytes, blocks: pa.Table, corrected: pa.Table, *, source_
     a_present, a_val, a_dec, a_widx = by_letter(_ARC + "R")
     if ar.size:
         lut = np.zeros((20, 2), np.int64)
-        for pl, ax in _PLANE_AXES.items():
+        for pl, ax in PLANE_AXES.items():
             lut[pl] = ax
         ax2 = lut[np.clip(plane[ar], 0, 19)]
         s, e, c = prev_held[ar], held[ar], centre[ar]
@@ -429,9 +286,9 @@ def write_program(data: bytes, blocks: pa.Table, corrected: pa.Table, *, source_
 
     moved = int(np.count_nonzero(np.bincount(e_row, minlength=n)[~via]))
     n_lines = int((~via).sum())
-    move_um = _table_np(corrected, "move_um")
-    clipped = int(_table_np(corrected, "clipped", bool).sum())
-    rounds = int(_table_np(corrected, "iteration", np.int64).max())
+    move_um = col(corrected, "move_um")
+    clipped = int(col(corrected, "clipped", bool).sum())
+    rounds = int(col(corrected, "iteration", np.int64).max())
     sha = source_sha256 or hashlib.sha256(data).hexdigest()
     text = (f"(CORRECTED PROGRAM - MACHINING ERROR COMPENSATION - {moved} OF {n_lines} MOTION BLOCKS CHANGED"
             + (f" - {vr.size} VIA LINES INSERTED" if vr.size else "")
@@ -512,7 +369,7 @@ def _splice(data: bytes, start, end, body) -> bytes:
     return src[idx].tobytes()
 
 
-def _scan(data: bytes) -> dict:
+def scan_words(data: bytes) -> dict:
     """Every address word of the program outside comments, vectorised over bytes.
 
     Returns arrays per word: letter (upper-case byte), line (0-based), value, vstart/vend (byte span
@@ -521,28 +378,28 @@ def _scan(data: bytes) -> dict:
     line start).
     """
     raw = np.frombuffer(data, dtype=np.uint8)
-    cls = _CLASS[raw]
-    is_nl = cls == _NL
+    cls = CLASS[raw]
+    is_nl = cls == NL
     line_of = np.cumsum(is_nl) - is_nl              # newline byte belongs to its own line
     line_start = np.concatenate(([0], np.flatnonzero(is_nl) + 1))
-    opens, closes = cls == _OPEN, cls == _CLOSE
+    opens, closes = cls == OPEN, cls == CLOSE
     comment = np.zeros(raw.size, bool)
     if opens.any() or closes.any():
         depth = np.cumsum(opens) - np.cumsum(closes)
         comment = (depth > 0) | closes
-    semi = (cls == _SEMI) & ~comment
+    semi = (cls == SEMI) & ~comment
     if semi.any():
         cs = np.cumsum(semi)
         start_cs = np.concatenate(([0], cs[is_nl]))
         comment |= (cs - start_cs[line_of]) > 0
     pct_line = np.zeros(line_start.size, bool)
-    first_code = np.flatnonzero((cls != _BLANK) & ~is_nl)
+    first_code = np.flatnonzero((cls != BLANK) & ~is_nl)
     if first_code.size:
         fl = line_of[first_code]
         firsts = first_code[np.concatenate(([True], fl[1:] != fl[:-1]))]
         pct_line[line_of[firsts[raw[firsts] == 37]]] = True
-    letter = (cls == _LETTER) & ~comment & ~pct_line[line_of]
-    num = (cls == _NUM) & ~comment
+    letter = (cls == LETTER) & ~comment & ~pct_line[line_of]
+    num = (cls == NUM) & ~comment
     pos = np.flatnonzero(letter)
     boundary = letter | comment | is_nl
     big = raw.size
@@ -570,15 +427,15 @@ def _scan(data: bytes) -> dict:
     plus = has_v & (c0 == 43)
     wline = line_of[pos]
     first = np.concatenate(([True], wline[1:] != wline[:-1])) if pos.size else np.zeros(0, bool)
-    blank_before = (pos > 0) & (cls[np.maximum(pos - 1, 0)] == _BLANK)
+    blank_before = (pos > 0) & (cls[np.maximum(pos - 1, 0)] == BLANK)
     # values: only needed for X Y Z I J K R (Python float on their text; exact like the parser)
     value = np.full(pos.size, np.nan)
-    want = np.isin(_UPPER[raw[pos]], np.frombuffer(b"XYZIJKR", np.uint8)) & has_v
+    want = np.isin(UPPER[raw[pos]], np.frombuffer(b"XYZIJKR", np.uint8)) & has_v
     idx = np.flatnonzero(want)
     if idx.size:
-        value[idx] = _numbers(raw, vstart[idx], vend[idx] - vstart[idx], _UPPER[raw[pos[idx]]],
-                              line_of[pos[idx]], _Errors("<program>"))
-    return {"letter": _UPPER[raw[pos]], "line": wline, "value": value, "vstart": vstart, "vend": vend,
+        value[idx] = numbers(raw, vstart[idx], vend[idx] - vstart[idx], UPPER[raw[pos[idx]]],
+                              line_of[pos[idx]], Problems("<program>"))
+    return {"letter": UPPER[raw[pos]], "line": wline, "value": value, "vstart": vstart, "vend": vend,
             "decimals": decimals, "dot": dot, "plus": plus, "lead0": lead0, "wstart": pos, "first": first,
             "blank_before": blank_before, "line_start": line_start}
 
@@ -630,6 +487,8 @@ def _insert_positions(wl, w_row, n, rows, letters):
     lead = after >= 0
     pos = np.where(lead, after, first_word[rows])
     return pos, lead, spaced[rows]
+
+
 def _header_line(lines) -> int:
     """Index of the line after which the header goes: the O line, else the first %, else before line 0."""
     first_pct = None
@@ -662,140 +521,35 @@ def reverse_check(text: bytes, blocks: pa.Table, corrected: pa.Table, path: str 
     # the blocks the program should have: the source's, less the via points not written
     via, via_w = _via_rows(corrected) if corrected.num_rows else (np.zeros(0, bool),) * 2
     if via.any():
-        drop = _table_np(corrected, "block_no", np.int64)[via & ~via_w]
-        blocks = blocks.filter(pa.array(~np.isin(_table_np(blocks, "block_no", np.int64), drop)))
+        drop = col(corrected, "block_no", np.int64)[via & ~via_w]
+        blocks = blocks.filter(pa.array(~np.isin(col(blocks, "block_no", np.int64), drop)))
         corrected = corrected.filter(pa.array(~via | via_w))
     rep = {"n_blocks": (blocks.num_rows, new_blocks.num_rows), "max_dev_um": 0.0, "ok": True, "message": ""}
     if new_blocks.num_rows != blocks.num_rows:
         rep.update(ok=False, message=f"{new_blocks.num_rows} blocks, source has {blocks.num_rows}")
         return rep
     for c in ("motion", "plane", "inch", "incremental"):
-        if not np.array_equal(_table_np(new_blocks, c, object), _table_np(blocks, c, object)):
+        if not np.array_equal(col(new_blocks, c, object), col(blocks, c, object)):
             rep.update(ok=False, message=f"column {c} differs from the source")
             return rep
     # blocks in order (via points renumber them): the corrected rows are the motion blocks
-    bno = _table_np(new_blocks, "block_no", np.int64)
-    rows = np.searchsorted(_table_np(blocks, "block_no", np.int64), _table_np(corrected, "block_no", np.int64))
-    got = np.stack([_table_np(new_blocks, c) for c in ("x1_mm", "y1_mm", "z1_mm")], 1)[rows]
-    want = np.stack([_table_np(corrected, c) for c in ("x_new_mm", "y_new_mm", "z_new_mm")], 1)
+    bno = col(new_blocks, "block_no", np.int64)
+    rows = np.searchsorted(col(blocks, "block_no", np.int64), col(corrected, "block_no", np.int64))
+    got = np.stack([col(new_blocks, c) for c in ("x1_mm", "y1_mm", "z1_mm")], 1)[rows]
+    want = np.stack([col(corrected, c) for c in ("x_new_mm", "y_new_mm", "z_new_mm")], 1)
     # axes the program never set before a block are held at their first value by the parser
     dev = np.abs(got - want)
-    inch = _table_np(new_blocks, "inch", bool)[rows]
+    inch = col(new_blocks, "inch", bool)[rows]
     grid = np.where(inch, 0.5e-4 * INCH_MM, 0.5e-3) + 1e-9
     rep["max_dev_um"] = float(dev.max() * 1000) if dev.size else 0.0
     # arc centres as the parser reconstructs them (from I J K or R) against the refitted centres
-    arc = np.isin(_table_np(corrected, "motion", np.int64), (2, 3))
+    arc = np.isin(col(corrected, "motion", np.int64), (2, 3))
     if arc.any():
-        cgot = np.stack([_table_np(new_blocks, c) for c in ("cx_mm", "cy_mm", "cz_mm")], 1)[rows][arc]
-        cwant = np.stack([_table_np(corrected, c) for c in ("cx_new_mm", "cy_new_mm", "cz_new_mm")], 1)[arc]
+        cgot = np.stack([col(new_blocks, c) for c in ("cx_mm", "cy_mm", "cz_mm")], 1)[rows][arc]
+        cwant = np.stack([col(corrected, c) for c in ("cx_new_mm", "cy_new_mm", "cz_new_mm")], 1)[arc]
         rep["max_centre_dev_um"] = float(np.nanmax(np.abs(cgot - cwant)) * 1000)
     rep["max_grid_um"] = float(grid.max() * 1000)
     if np.any(dev > grid[:, None] + 1e-9):
         i = int(np.argmax(dev.max(1)))
         rep.update(ok=False, message=f"block {int(bno[rows[i]])}: parsed {got[i]} != corrected {want[i]}")
     return rep
-
-
-def write_ln_program(blocks: pa.Table, corrected: pa.Table, name: str = "CORRECTED", use_new: bool = True,
-                     chord_tol_mm: float = 0.001, decimals: int = 4) -> str:
-    """Heidenhain-style program: ``LN`` blocks with the surface normals of the corrected path.
-
-    One block per NC vertex: ``LN X.. Y.. Z.. NX.. NY.. NZ..`` where a predicted pass meets the
-    vertex (its unit normal, out of material), plain ``L`` elsewhere, ``FMAX`` for rapids, ``F`` when
-    the feed changes. LN blocks are straight, so arcs are written as chords within
-    ``chord_tol_mm`` of the (refitted) arc, each with the arc's end normal turned about the arc axis
-    to the chord point. ``use_new=False`` writes the original path with normals, for controls that
-    apply the compensation themselves (3D-ToolComp with :func:`write_comp_table`); do not use the
-    corrected path and the table together, that corrects twice. Coordinates are in the frame of the
-    source program (tool tip unless ``tool.control_point`` says centre).
-    """
-    from stages.split import arc_chords
-    cols = ("x_new_mm", "y_new_mm", "z_new_mm") if use_new else ("x_mm", "y_mm", "z_mm")
-    p = np.stack([_table_np(corrected, c) for c in cols], 1)
-    nrm = np.stack([_table_np(corrected, c) for c in ("nx", "ny", "nz")], 1)
-    motion = _table_np(corrected, "motion", np.int64)
-    bno = _table_np(blocks, "block_no", np.int64)
-    rows = np.searchsorted(bno, _table_np(corrected, "block_no", np.int64))
-    feed = np.nan_to_num(_table_np(blocks, "feed_mm_min")[rows])
-    plane = _table_np(blocks, "plane", np.int64)[rows]
-    if use_new:
-        centre = np.stack([_table_np(corrected, c) for c in ("cx_new_mm", "cy_new_mm", "cz_new_mm")], 1)
-    else:
-        centre = np.stack([_table_np(blocks, c) for c in ("cx_mm", "cy_mm", "cz_mm")], 1)[rows]
-    start = np.vstack([p[:1], p[:-1]])
-    # expand arcs into chord end points; lines keep their vertex
-    arc = np.flatnonzero(((motion == 2) | (motion == 3)) & ~np.isnan(centre).any(1))
-    pts, nn, src = p, nrm, np.arange(p.shape[0])
-    if arc.size:
-        owner, _, q1 = arc_chords(start[arc], p[arc], centre[arc], plane[arc], motion[arc] == 3, chord_tol_mm)
-        axis = np.zeros((arc.size, 3))
-        axis[np.arange(arc.size), np.array([{17: 2, 18: 1, 19: 0}[int(v)] for v in plane[arc]])] = 1.0
-        # turn the end normal about the arc axis by the angle from the end to the chord point
-        c, e = centre[arc][owner], p[arc][owner]
-        ax = axis[owner]
-        u, v = e - c, q1 - c
-        u -= np.einsum("ij,ij->i", u, ax)[:, None] * ax
-        v -= np.einsum("ij,ij->i", v, ax)[:, None] * ax
-        ang = np.arctan2(np.einsum("ij,ij->i", np.cross(u, v), ax), np.einsum("ij,ij->i", u, v))
-        n0 = nrm[arc][owner]
-        cos, sin = np.cos(ang)[:, None], np.sin(ang)[:, None]
-        n1 = n0 * cos + np.cross(ax, n0) * sin + ax * np.einsum("ij,ij->i", ax, n0)[:, None] * (1 - cos)
-        keep = np.ones(p.shape[0], bool)
-        keep[arc] = False
-        line_rows = np.flatnonzero(keep)
-        order_key = np.concatenate([line_rows.astype(float), arc[owner] + (np.arange(owner.size) + 1.0) / (owner.size + 2)])
-        o = np.argsort(order_key, kind="stable")
-        pts = np.concatenate([p[line_rows], q1])[o]
-        nn = np.concatenate([nrm[line_rows], n1])[o]
-        src = np.concatenate([line_rows, arc[owner]])[o]
-    out = [f"0 BEGIN PGM {name} MM"]
-    prev = np.full(3, np.nan)
-    prev_f = None
-    k = 1
-    res = 0.5 * 10.0 ** -decimals
-    for i in range(pts.shape[0]):
-        words = [f"{letter}{pts[i, a]:+.{decimals}f}" for a, letter in enumerate("XYZ")
-                 if not abs(pts[i, a] - prev[a]) <= res]
-        if not words:
-            continue
-        prev = pts[i]
-        r = src[i]
-        has_n = motion[r] != 0 and np.all(np.isfinite(nn[i]))
-        line = f"{k} {'LN' if has_n else 'L'} " + " ".join(words)
-        if has_n:
-            line += " " + " ".join(f"N{letter}{v:+.7f}" for letter, v in zip("XYZ", nn[i]))
-        if motion[r] == 0:
-            line += " FMAX"
-        elif feed[r] != prev_f:
-            line += f" F{feed[r]:g}"
-            prev_f = feed[r]
-        out.append(line)
-        k += 1
-    out.append(f"{k} END PGM {name} MM")
-    return "\n".join(out) + "\n"
-
-
-def write_comp_table(errors: pa.Table, step_deg: float = 1.0, max_deg: float = 90.0) -> str:
-    """Contact-angle compensation table (like a Heidenhain ``.3DTC`` file) as CSV.
-
-    Radius deviation per contact angle: the predicted error turned into an equivalent tool-contour
-    error (seed 002: 2 µm left at a 45° contact → a tool 2 µm smaller there), i.e. ``−err_um`` as mm,
-    averaged per angle bin, linearly interpolated over empty bins (held at the ends).
-    """
-    q = _table_np(errors, "contact_deg") if errors.num_rows else np.zeros(0)
-    e = _table_np(errors, "err_um") if errors.num_rows else np.zeros(0)
-    ok = np.isfinite(q) & np.isfinite(e)
-    q, e = q[ok], e[ok]
-    angles = np.arange(0.0, max_deg + step_deg / 2, step_deg)
-    b = np.clip(np.rint(q / step_deg).astype(np.int64), 0, angles.size - 1)
-    s = np.bincount(b, e, angles.size)
-    c = np.bincount(b, None, angles.size)
-    have = c > 0
-    dev = np.zeros(angles.size)
-    if have.any():
-        dev = np.interp(angles, angles[have], -(s[have] / c[have]))
-    lines = ["# contact-angle compensation table (3DTC-like): radius deviation of the ball per contact angle",
-             "# angle 0 = tip, 90 = equator; deviation in mm, negative = the tool cuts as if smaller",
-             "angle_deg,radius_deviation_mm,n_passes"]
-    lines += [f"{a:.1f},{d / 1000.0:+.5f},{int(cnt)}" for a, d, cnt in zip(angles, dev, c)]
-    return "\n".join(lines) + "\n"

@@ -1,0 +1,66 @@
+"""``docs/config.md``: every workflow key with its type, default and meaning, from the config models.
+
+    python3 -m pipeline.config_doc > docs/config.md
+
+``tests/test_docs.py`` regenerates it and compares it with the committed file, so it never drifts.
+"""
+from __future__ import annotations
+
+import typing
+
+from pydantic import BaseModel
+from pydantic.fields import PydanticUndefined
+
+from pipeline.config import Workflow, models_in
+
+HEADER = """# Workflow keys
+
+Generated from the configuration models (`pipeline/config.py`) by `python3 -m pipeline.config_doc`;
+a test checks this file against them. A workflow is a YAML file (DESIGN §4); an unknown key or a
+bad value is an error naming the file, the line and the key. Relative paths are relative to the
+project (the folder holding `workflows/`). `tool` and `material` may be lists keyed by T number `t`.
+"""
+
+
+def _type_name(annotation) -> str:
+    origin = typing.get_origin(annotation)
+    if origin is typing.Union:
+        args = [a for a in typing.get_args(annotation) if a is not type(None)]
+        return " or ".join(_type_name(a) for a in args) + (", optional" if len(args) < len(typing.get_args(annotation)) else "")
+    if origin is typing.Literal:
+        return " \\| ".join(f"`{a}`" for a in typing.get_args(annotation))
+    if origin in (list, tuple):
+        return "list of " + ", ".join(_type_name(a) for a in typing.get_args(annotation))
+    if origin is dict:
+        return "mapping"
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return f"[{annotation.__name__.lower()}](#{annotation.__name__.lower()})"
+    return getattr(annotation, "__name__", str(annotation))
+
+
+def _default(field) -> str:
+    if field.default is PydanticUndefined:
+        return "required"
+    if isinstance(field.default, BaseModel):
+        return "see below"
+    return "`null`" if field.default is None else f"`{field.default}`"
+
+
+def render() -> str:
+    out, seen, queue = [HEADER], set(), [Workflow]
+    while queue:
+        model = queue.pop(0)
+        if model in seen:
+            continue
+        seen.add(model)
+        title = "workflow (top level)" if model is Workflow else model.__name__.lower()
+        out.append(f"\n## {title}\n\n{(model.__doc__ or '').strip()}\n")
+        out.append("| key | type | default | meaning |\n|---|---|---|---|")
+        for name, field in model.model_fields.items():
+            out.append(f"| `{name}` | {_type_name(field.annotation)} | {_default(field)} | {field.description or ''} |")
+            queue.extend(m for m in models_in(field.annotation) if m not in seen)
+    return "\n".join(out) + "\n"
+
+
+if __name__ == "__main__":
+    print(render(), end="")

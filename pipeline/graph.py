@@ -1,0 +1,100 @@
+"""The stage graph: which stages run, in which order, what they read and write (DESIGN §2, §3).
+
+Each stage module declares itself once (``NAME``, ``VERSION``, ``INPUTS``, ``OUTPUTS``, ``PARAMS``,
+``run``; see :mod:`stages`); this module only lists them. The engine builds the Dask tasks, the
+cache keys and the correction rounds from these declarations and never names a stage.
+
+Inputs are resolved by name: a source (``SOURCES``: the program file of the partition, or a
+workflow file such as the stock), else the table of the nearest earlier stage that outputs it.
+In a repeated sub-chain (``Repeat``) a plain name means this round's table when a stage earlier
+in the round wrote it, else the first round's; ``name@first`` is always the first round's and
+``name@previous`` the previous round's (absent in the first round).
+"""
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass, field
+from typing import Callable, Optional
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One node: a pure ``run(inputs, params) -> {table: pa.Table}`` and its declaration."""
+
+    name: str
+    module: str                      # import path; workers import it by name
+    version: str
+    inputs: tuple
+    outputs: tuple
+    params: tuple
+    shards: int = 1                  # tasks per partition (joined with the module's combine_shards)
+
+    @classmethod
+    def of(cls, module) -> "Stage":
+        return cls(module.NAME, module.__name__, str(module.VERSION), tuple(module.INPUTS),
+                   tuple(module.OUTPUTS), tuple(module.PARAMS), int(getattr(module, "SHARDS", 1)))
+
+    def load(self):
+        return importlib.import_module(self.module)
+
+
+@dataclass(frozen=True)
+class Repeat:
+    """Repeat ``stages`` (the tail of the graph, plus stages that only run in later rounds) until
+    ``until(table, params)`` says the round converged or ``max_rounds`` (a workflow key) rounds ran.
+
+    ``record(tables) -> dict`` summarises each round for ``run.json`` from the tables it names in
+    ``record_inputs``; ``keep_last`` tables are published from the last round, the others from the
+    first (the prediction of the program as written).
+    """
+
+    stages: tuple
+    until: Callable
+    until_table: str
+    max_rounds: str
+    record: Callable
+    record_inputs: tuple
+    keep_last: tuple
+
+
+@dataclass(frozen=True)
+class Writer:
+    """A file output made after the run from one partition's tables (e.g. corrected NC programs).
+
+    ``fn(inputs, params) -> {file name: bytes}``; the engine writes the files atomically into
+    ``<out>/<directory>/`` for every partition that has all ``inputs``.
+    """
+
+    name: str
+    fn: Callable
+    inputs: tuple
+    params: tuple
+    directory: str
+
+
+@dataclass(frozen=True)
+class Graph:
+    sources: dict                     # input name → "partition" (the program file) or a workflow key
+    stages: tuple
+    repeat: Optional[Repeat] = None
+    status: str = ""                  # table whose one row per partition says status, message, tool
+    writers: tuple = field(default_factory=tuple)
+
+    def names(self) -> list[str]:
+        return [s.name for s in self.stages]
+
+
+def mould_graph() -> Graph:
+    """The main job: predict every finishing pass and correct the programs (workflows/mould.yaml)."""
+    from stages import (angle_prune, correct, correct_blocks, cut_filter, deflection, errors, forces,
+                        generating, parse, split)
+    from stages.nc.output import corrected_programs
+    main = tuple(Stage.of(m) for m in (parse, split, cut_filter, angle_prune, generating, forces,
+                                       deflection, errors, correct))
+    rounds = Repeat(stages=(Stage.of(correct_blocks),) + main[1:], until=correct.converged,
+                    until_table="corrected", max_rounds="correct.max_iter", record=correct.round_record,
+                    record_inputs=("errors", "corrected", "passes", "passes@first"), keep_last=("corrected",))
+    nc = Writer("nc", corrected_programs, inputs=("program_file", "blocks", "corrected", "errors"),
+                params=("correct",), directory="nc")
+    return Graph(sources={"program_file": "partition", "stock": "stock", "nominal": "nominal"},
+                 stages=main, repeat=rounds, status="programs", writers=(nc,))

@@ -1,0 +1,123 @@
+"""What a run leaves for its users: tables, written files, the report and ``run.json`` (DESIGN §3).
+
+``<out>/tables/<table>/<program_id>.parquet`` are hard links to cache entries (copies where links are
+impossible), rebuilt every run so they hold exactly this workflow's programs: each table from the
+last stage that wrote it in the first round (the prediction of the programs as written), the
+Repeat's ``keep_last`` tables from the last round. The graph's writers then make their files (the
+corrected NC programs), each written to a temporary name and renamed.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+import traceback
+from pathlib import Path
+
+import pyarrow.parquet as pq
+
+
+def publish(run, reports: list, failures: list, wall_s: float) -> dict:
+    tables = materialize(run)
+    files = write_files(run, failures)
+    from pipeline.report import write_report
+    report = None
+    try:
+        report = write_report(run.out, run.wf.name)
+    except Exception as e:  # a picture must never cost the tables
+        failures.append({"program_id": None, "stage": "report", "message": f"report: {type(e).__name__}: {e}",
+                         "traceback": traceback.format_exc()})
+    summary = summarize(run, reports, failures, tables, wall_s)
+    summary["files"] = files
+    summary["report"] = str(report) if report else None
+    summary["dashboard"] = getattr(run, "dashboard", None)
+    if run.repeat is not None:
+        summary["rounds"] = {p.program_id: p.rounds for p in run.parts if p.rounds}
+    (run.out / "run.json").write_text(json.dumps(summary, indent=2, default=str))
+    return summary
+
+
+def final_tables(run, part) -> dict:
+    """table → (stage, key) of what a partition publishes."""
+    out = dict(part.tables[1])
+    if run.repeat is not None:
+        last = part.tables[run.last_round(part)]
+        out.update({t: last[t] for t in run.repeat.keep_last if t in last})
+    return out
+
+
+def materialize(run) -> dict[str, int]:
+    root, staging = run.out / "tables", run.out / ".tables.tmp"
+    shutil.rmtree(staging, ignore_errors=True)
+    counts: dict[str, int] = {}
+    for part in run.parts:
+        for name, (stage, key) in final_tables(run, part).items():
+            if not run.cache.has(stage, key):
+                continue
+            d = staging / name
+            d.mkdir(parents=True, exist_ok=True)
+            src, dst = run.cache.table_path(stage, key, name), d / f"{part.program_id}.parquet"
+            try:
+                os.link(src, dst)
+            except OSError:
+                shutil.copyfile(src, dst)
+            counts[name] = counts.get(name, 0) + 1
+    if root.exists():
+        shutil.rmtree(root)
+    staging.mkdir(parents=True, exist_ok=True)
+    os.replace(staging, root)
+    return counts
+
+
+def _atomic_write(path: Path, data: bytes) -> None:
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+
+
+def write_files(run, failures: list) -> int:
+    """The graph's writers over every partition that has their inputs; returns how many files."""
+    n = 0
+    for writer in run.graph.writers:
+        for part in run.parts:
+            if part.failed:
+                continue
+            have = final_tables(run, part)
+            if not all(i.partition("@")[0] in have or run.graph.sources.get(i) for i in writer.inputs):
+                continue
+            try:
+                inputs = {}
+                for name in writer.inputs:
+                    if run.graph.sources.get(name) == "partition":
+                        inputs[name] = {"path": part.path, "sha256": part.sha256, "program_id": part.program_id}
+                    else:
+                        stage, key = have[name]
+                        inputs[name] = run.cache.read(stage, key, name)
+                files = writer.fn(inputs, run.wf.params(writer.params, part.tool_t, run.base))
+                outdir = run.out / writer.directory
+                outdir.mkdir(parents=True, exist_ok=True)
+                for fname, data in files.items():
+                    _atomic_write(outdir / fname, data)
+                    n += 1
+            except Exception as e:  # one program's output must not cost the others
+                failures.append({"program_id": part.program_id, "stage": writer.name,
+                                 "message": f"{writer.name}: {type(e).__name__}: {e}",
+                                 "traceback": traceback.format_exc()})
+    return n
+
+
+def summarize(run, reports, failures, tables, wall_s) -> dict:
+    n_passes = 0
+    prog_dir = run.out / "tables" / "passes"
+    if prog_dir.is_dir():
+        n_passes = sum(pq.ParquetFile(p).metadata.num_rows for p in prog_dir.glob("*.parquet"))
+    failed_ids = sorted({f["program_id"] for f in failures if f["program_id"] is not None})
+    return {
+        "workflow": str(run.workflow_path), "name": run.wf.name, "output": str(run.out),
+        "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "wall_s": round(wall_s, 3),
+        "counts": {"programs": len(run.parts), "programs_ok": len(run.parts) - len(failed_ids),
+                   "programs_failed": len(failed_ids), "passes": n_passes, "tables": tables},
+        "stages": [vars(r) | {"compute_s": round(r.compute_s, 3), "wall_s": round(r.wall_s, 3)} for r in reports],
+        "failures": failures,
+    }
