@@ -45,7 +45,7 @@ def build(ppm):
     s_p = pg.s0[levels] + np.linalg.norm(tips - pg.p0[levels], axis=1)
     f = gen.feed_per_tooth(pg, TOOL["flutes"], 1 / ppm)[levels]
     gap = gen.own_path_gap(shape, f, cf_stage.fine_tolerance(ppm))
-    scene = gen._layer_scene(views, pg, pg.motion != 0, s_p, f, pg.sweep_bounds(shape), wp, mesh,
+    scene = gen.layer_scene(views, pg, pg.motion != 0, s_p, f, pg.sweep_bounds(shape), wp, mesh,
                              tips, fd, coarse, gap)
     return dict(views=views * gen.N_LAYERS, scene=scene, pg=pg, shape=shape, wp=wp, levels=levels, tips=tips)
 

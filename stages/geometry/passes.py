@@ -10,7 +10,7 @@ from stages.geometry.cutter import Cutter
 
 # a move joined end to start to the next that turns less than this from it carries the same cut
 # on: the split stage's pieces of one line, a corrected line's via pieces, a curve's CAM chords
-# (see cut_filter.line_interior and errors._deepest_passage)
+# (see stages.scan.cut_passes.line_interior and stages.cutting.surface_error.deepest_passage)
 CONTINUE_DEG = 10.0
 
 
