@@ -317,3 +317,25 @@ def test_the_spindle_s_start_angle_repeats_after_a_tooth_period_without_runout_a
         np.testing.assert_allclose(tooth, e0, atol=1e-3)    # the periodic deflection's last sampled revolution
     else:
         assert np.abs(tooth - e0).max() > 1.0
+
+
+def test_the_machine_imports_nothing_of_the_prediction():
+    """The machine is the independent check of the prediction (DESIGN §8.5): besides its own modules
+    it imports only ``stages.InputError``, ``stages.geometry`` (the cutter, path geometry) and
+    ``stages.tables``."""
+    import ast
+    from pathlib import Path
+    allowed = ("stages.virtual_machine.", "stages.geometry.", "stages.tables")
+    files = sorted((Path(__file__).resolve().parents[1] / "stages" / "virtual_machine").glob("*.py"))
+    assert len(files) > 1
+    for f in files:
+        for node in ast.walk(ast.parse(f.read_text())):
+            if isinstance(node, ast.ImportFrom):
+                names = [node.module] if node.module != "stages" else [f"stages.{a.name}" for a in node.names]
+            elif isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            else:
+                continue
+            for name in names:
+                if name.split(".")[0] == "stages":
+                    assert name == "stages.InputError" or name.startswith(allowed), f"{f.name} imports {name}"
