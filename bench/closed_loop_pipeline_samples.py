@@ -9,7 +9,7 @@ walls and the boss, where the error is):
 1. ``pipeline run`` predicts the error of every pass (render → forces → deflection → errors, the
    sample workflow's tool, material, machine FRF table, stock and prune) and writes the corrected
    program after ``correct.max_iter`` rounds (1 and 3);
-2. the original and the corrected programs are machined on ``stages/virtual_machine.py`` (discrete
+2. the original and the corrected programs are machined on ``stages/virtual_machine/`` (discrete
    flutes, time-domain dynamics of the modes it fits to the same FRF table, the tool's measured
    profile, its own engagement on the semi-finished stock; no prediction code) and probed inside the window on its own plan
    (``grid_plan``, 0.1 mm along the passes' contact lines);
@@ -156,8 +156,9 @@ def _vm_key(text: bytes, wf: dict, *parts) -> str:
     every other input it reads."""
     import hashlib
     h = hashlib.sha256()
-    for f in ("stages/virtual_machine.py", "stages/geometry/paths.py"):
-        h.update((ROOT / f).read_bytes())
+    files = sorted((ROOT / "stages" / "virtual_machine").glob("*.py"))
+    for f in files + [ROOT / "stages/geometry/paths.py", ROOT / "stages/geometry/cutter.py"]:
+        h.update(f.read_bytes())
     import pyarrow as pa
     sink = pa.BufferOutputStream()
     passes = _vm_passes(text, wf)
@@ -270,7 +271,7 @@ def vm_errors(window, programs: dict, wf: dict, spacing_mm: float = 0.1, cache: 
 
     import pyarrow as pa
     import pyarrow.parquet as pq
-    from stages.virtual_machine import grid_plan
+    from stages.virtual_machine import grid_plan, near_passes
     x0, x1, y0, y1 = window
     inputs = vm_inputs(wf, window, spacing_mm)
 
@@ -279,7 +280,7 @@ def vm_errors(window, programs: dict, wf: dict, spacing_mm: float = 0.1, cache: 
         pts, nrm = grid_plan(vm, spacing_mm)
         ok = (pts[:, 0] >= x0) & (pts[:, 0] < x1) & (pts[:, 1] >= y0) & (pts[:, 1] < y1)
         pts, nrm = pts[ok], nrm[ok]
-        rows = vm._near_passes(pts + vm.R * nrm, 1)[0][:, 0] if len(pts) else np.zeros(0, np.int64)
+        rows = near_passes(vm.path, pts + vm.R * nrm, 1)[0][:, 0] if len(pts) else np.zeros(0, np.int64)
         return {"pts": pts, "nrm": nrm, "ideal": vm.probe(pts, nrm), "pass_id": vm.path.pass_id[rows]}
 
     machined = {}

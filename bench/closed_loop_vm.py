@@ -5,7 +5,7 @@ Seed 000 Fig. 16 set-up (Ø20 ball, 2 flutes, 6000 min⁻¹, 0.4 mm/tooth, 0.63 
 51 z-level passes along a cylinder from q = 0° to 89°, a 6 mm long stock): ``pipeline run`` predicts
 the error of every level (render → forces → deflection → errors) and writes the corrected program
 with ``correct.max_iter`` = 1 and = 3. The original and both corrected programs are then machined on
-``stages/virtual_machine.py`` (discrete flutes, time-domain dynamics, its own engagement; no shared
+``stages/virtual_machine/`` (discrete flutes, time-domain dynamics, its own engagement; no shared
 prediction code) and probed on the design cylinder; the error is measured against the original
 program machined on a rigid machine (so the cusps, which no correction removes, are not counted).
 

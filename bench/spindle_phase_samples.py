@@ -2,7 +2,7 @@
 a bench, not a CI test: one virtual-machine load a program, ~15 min each at 0.5 mm, side by side).
 
 The virtual machine cuts every probe point with discrete tooth passages whose spindle angle follows
-the program's clock (``stages/virtual_machine.py``: θ = 360° t / T, t from the program's start). A
+the program's clock (``stages/virtual_machine/``: θ = 360° t / T, t from the program's start). A
 real spindle starts at an angle nobody sets, so the same program cut twice leaves a surface that
 differs wherever the surface depends on which flute passes where (a buried ball, a corner fillet
 finished by a few passages); and any correction, which changes the path's length and so every later

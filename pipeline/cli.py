@@ -72,7 +72,7 @@ def status(workflow, out, as_json):
 @click.option("--out", "out", required=True, type=click.Path(dir_okay=False), help="Profile CSV to write (+ .json, .png).")
 def tool_profile(images, um_per_px, diameter_mm, tool_type, corner_radius_mm, cutoff_deg, reference, centre_z_px, out):
     """Tool contour error per contact angle, runout and envelope from silhouette images."""
-    from stages.tool_images_cli import tool_profile_command
+    from stages.tool_measure import tool_profile_command
     try:
         res = tool_profile_command(images, um_per_px, diameter_mm, tool_type, out, corner_radius_mm=corner_radius_mm,
                                    cutoff_deg=cutoff_deg, reference=reference, centre_z_px=centre_z_px)
@@ -96,7 +96,7 @@ def tool_profile(images, um_per_px, diameter_mm, tool_type, corner_radius_mm, cu
 @click.option("--out", "out", required=True, type=click.Path(dir_okay=False), help="Parquet file to write.")
 def tool_wear(before, after, run_dir, programs, tool, cut_length_m, tool_id, out):
     """Wear per contact angle and wear rate per metre of cut, as a Parquet table (schema tool_wear)."""
-    from pipeline.tool_wear import wear_table, write_wear
+    from stages.tool_measure import wear_table, write_wear
     if run_dir is None and cut_length_m is None:
         click.echo("error: give --run RUN_DIR or --cut-length-m X (the wear rate needs the cut length)", err=True)
         sys.exit(2)
@@ -104,8 +104,9 @@ def tool_wear(before, after, run_dir, programs, tool, cut_length_m, tool_id, out
         click.echo("error: --program and --tool select passes of a run; they need --run", err=True)
         sys.exit(2)
     try:
-        t = wear_table(before, after, cut_length_m=cut_length_m, run_dir=run_dir, programs=list(programs) or None,
-                       tool=tool, tool_id=tool_id)
+        t = wear_table(before, after, cut_length_m=cut_length_m, run_dir=run_dir,
+                       run_tables=_run_tables(run_dir) if run_dir is not None else None,
+                       programs=list(programs) or None, tool=tool, tool_id=tool_id)
     except InputError as e:
         click.echo(f"error: {e}", err=True)
         sys.exit(2)
@@ -116,6 +117,16 @@ def tool_wear(before, after, run_dir, programs, tool, cut_length_m, tool_id, out
     L = t.column("cut_length_m")[0].as_py()
     click.echo(f"{t.num_rows} contact angles; largest wear {w[k]:+.2f} um at {q[k]:.1f} deg; cut length "
                f"{L:.3f} m ({t.column('cut_length_source')[0].as_py()}); wrote {out}")
+
+
+def _run_tables(run_dir):
+    """(passes, cut_filter) tables of a run directory; None for one it has not written."""
+    from pathlib import Path
+
+    import pyarrow.parquet as pq
+    root = Path(run_dir) / "tables"
+    return tuple(pq.read_table(root / name) if (root / name).is_dir() and any((root / name).glob("*.parquet"))
+                 else None for name in ("passes", "cut_filter"))
 
 
 @main.command("calibrate-forces")

@@ -16,7 +16,7 @@ Writes
     plus a fine 0.3 µm waviness of 1.5° period (seed 002's "finely wavy" CV1), held 4 µm
     eccentric in the chuck (phase 35°).
 ``tools/t1_profile_measured.csv`` (+ ``.json``, ``.png``)
-    The profile measured from these images by ``stages.tool_images_cli.tool_profile_command``
+    The profile measured from these images by ``stages.tool_measure.tool_profile_command``
     (what ``pipeline tool-profile`` runs). The images were taken in the machine with the tool at
     a known height (tool length from the tool setter), so the ball-centre row is given
     (``centre_z_px``) rather than fitted; the result then reproduces ``tools/t1_profile.csv``
@@ -98,7 +98,7 @@ def main(argv=None):
 
     import sys
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from stages.tool_images_cli import tool_profile_command
+    from stages.tool_measure import tool_profile_command
 
     res = tool_profile_command(img_dir, UM_PER_PX, DIAMETER_MM, "ball", out / "tools" / "t1_profile_measured.csv",
                                centre_z_px=ZC)

@@ -366,7 +366,7 @@ def test_closed_loop_cylinder_benchmark():
 
 
 def _gap_vm_closed_loop(src: bytes, stock, tool, material, k, pts, nrm, split, level_of, max_iter=4):
-    """Correct ``src`` from errors measured on stages/virtual_machine.py (issue 7; shares no prediction
+    """Correct ``src`` from errors measured on stages/virtual_machine/ (issue 7; shares no prediction
     code) and machine the written program there again. Errors are against the original program cut
     on a rigid machine; per pass, the mean over the probe points that ``level_of`` assigns to it."""
     from stages.virtual_machine import VirtualMachine

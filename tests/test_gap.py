@@ -156,15 +156,9 @@ def test_reader_parquet_and_off_part_points_rejected(tmp_path, sample):
 def own(rigid, sample):
     """Plan points whose surface the nearest pass alone leaves (the closed forms below are that
     pass's; where a neighbouring pass cuts deeper, e.g. between rows, the probe sees both)."""
-    import stages.virtual_machine as vm_mod
     _, pts, nrm = sample
     both = rigid.probe(pts, nrm)
-    keep = vm_mod.PROBE_PASSES
-    try:
-        vm_mod.PROBE_PASSES = 1
-        alone = rigid.probe(pts, nrm)
-    finally:
-        vm_mod.PROBE_PASSES = keep
+    alone = rigid.probe(pts, nrm, probe_passes=1)
     mask = np.abs(both - alone) < 1e-3
     assert mask.mean() > 0.8
     return mask

@@ -184,7 +184,7 @@ def test_iterated_correction_through_the_engine(tmp_path):
     assert rms1 < rms0
     assert rms3 < rms1
 
-    # closed loop on the virtual machine of the gap issue (stages/virtual_machine.py: discrete
+    # closed loop on the virtual machine of the gap issue (stages/virtual_machine/: discrete
     # flutes, time-domain dynamics, its own engagement; shares no prediction code): the programs
     # machined there, probed on the design cylinder, against the original program on a rigid machine
     vm_rms = _virtual_machine_rms(tmp_path / "stock.stl", {"original": src, "one": (check / "nc" / "one.nc").read_bytes(),

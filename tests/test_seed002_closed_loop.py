@@ -1,7 +1,7 @@
 """Seed 002's example through the real corrected program (issue 6 must-show, issue 5 closed loop).
 
 2 µm of material left on the 45° surface of a measured part → composite tool profile with a 2 µm
-dent at 45° (``stages.tool_profile.composite_profile``) → the ``errors`` stage reads it as
+dent at 45° (``stages.tool_measure.composite_profile``) → the ``errors`` stage reads it as
 ``tool.profile`` → the ``correct`` stage → the corrected NC program written by ``nc_writer`` →
 machined again in an independent simulation written here (a 2-D envelope of the real tool shape,
 not the prediction code), which must show the 2 µm gone.
@@ -24,7 +24,7 @@ import pyarrow as pa
 import pytest
 
 from stages import correct, errors
-from stages import tool_profile as tp
+from stages import tool_measure as tm
 from stages.nc.writer import reverse_check, write_program
 from stages.nc.reader import parse_program
 from stages.nc.moves import split_blocks
@@ -109,7 +109,7 @@ def test_seed_002_example_removed_by_the_corrected_program(tmp_path):
     nrm = np.column_stack([np.sin(np.radians(q)) * np.cos(az), np.sin(np.radians(q)) * np.sin(az), np.cos(np.radians(q))])
     dev = true_dent_um(q) + rng.normal(0, 0.1, q.size)
     first = pd.DataFrame({"contact_deg": GRID, "error_um": np.zeros(GRID.size)})   # the imaged tool: no error seen
-    comp = tp.composite_profile(first, rng.uniform(-20, 20, (q.size, 3)), dev, nrm)
+    comp = tm.composite_profile(first, rng.uniform(-20, 20, (q.size, 3)), dev, nrm)
     i45 = int(np.flatnonzero(GRID == 45.0)[0])
     (region,) = comp.attrs["transitions"]
     print(f"\ncomposite profile: {comp.error_um.iloc[i45]:+.3f} um at 45 deg, X1 {region['x1_deg']:.1f} deg, "

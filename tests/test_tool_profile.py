@@ -12,8 +12,8 @@ import pandas as pd
 import pytest
 
 from stages import InputError
-from stages import tool_profile as tp
-from stages.tool_images_cli import tool_profile_command
+from stages import tool_measure as tm
+from stages.tool_measure import tool_profile_command
 
 UM_PER_PX = 1.0
 D_MM = 1.0                       # Ø1 mm ball (seed 003's tool) at 1 µm/px: R = 500 px
@@ -78,8 +78,8 @@ def tool_images(error_fn, zc=ZC, seed=0):
 
 
 def measure(images, **kw):
-    ms = [tp.measure_image(im, 255.0, UM_PER_PX, D_MM, "ball", **kw) for im in images]
-    return tp.measure_tool(ms, ANGLES, UM_PER_PX)
+    ms = [tm.measure_image(im, 255.0, UM_PER_PX, D_MM, "ball", **kw) for im in images]
+    return tm.measure_tool(ms, ANGLES, UM_PER_PX)
 
 
 @pytest.fixture(scope="module")
@@ -127,7 +127,7 @@ def test_wear_difference_in_a_common_frame(dented):
     before, summary = dented
     after, _ = measure(tool_images(lambda q: dent_um(q) + wear_um(q), zc=ZC + 0.3, seed=50),
                        centre_z_px=summary["centre_z_px"])
-    w = tp.wear_profile(before, after, cut_length_m=120.0)
+    w = tm.wear_profile(before, after, cut_length_m=120.0)
     err = w["wear_um"].to_numpy() - wear_um(GRID)
     print(f"wear error over 5-85°: max {np.abs(err[BAND]).max():.3f} µm, RMS {rms(err[BAND]):.3f} µm")
     assert np.abs(err[BAND]).max() <= 0.7
@@ -140,7 +140,7 @@ def test_bull_nose_corner_profile():
     rc, r0 = 200.0, 300.0
     err_fn = lambda q: 2.0 * np.exp(-0.5 * ((np.asarray(q) - 60.0) / 5.0) ** 2)
     img = render(lambda q: rc - err_fn(q), zc=150.0, r0=r0, h=500)
-    m = tp.measure_image(img, 255.0, UM_PER_PX, D_MM, "bull", corner_radius_mm=0.2)
+    m = tm.measure_image(img, 255.0, UM_PER_PX, D_MM, "bull", corner_radius_mm=0.2)
     e = m["error_um"].mean(axis=0)
     assert rms(e[BAND] - err_fn(GRID[BAND])) <= 0.3
     assert abs(m["diameter_um"] - 1000.0) <= 0.5
@@ -151,7 +151,7 @@ def test_lowpass_is_the_iso_gaussian():
     q = GRID
     for wavelength, gain in [(5.0, 0.5), (50.0, 0.5 ** ((5.0 / 50.0) ** 2))]:
         y = np.sin(2 * np.pi * q / wavelength)
-        f = tp.lowpass(y, cutoff_deg=5.0)
+        f = tm.lowpass(y, cutoff_deg=5.0)
         mid = (q > 20) & (q < 70)
         assert abs(np.abs(f[mid]).max() - gain) < 0.01
 
@@ -159,20 +159,20 @@ def test_lowpass_is_the_iso_gaussian():
 def test_eccentricity_closed_form():
     th = np.array([0.0, 45.0, 90.0, 200.0, 300.0])
     x = 12.0 + 7.0 * np.cos(np.radians(th - 33.0))
-    e = tp.eccentricity(x, th)
+    e = tm.eccentricity(x, th)
     assert abs(e["eccentricity_um"] - 7.0) < 1e-9 and abs(e["phase_deg"] - 33.0) < 1e-6
     assert e["spindle_axis_um"] == pytest.approx(12.0)
-    assert tp.eccentricity([1.0], [0.0])["eccentricity_um"] is None
-    assert tp.eccentricity([0.0, 4.0], [0.0, 180.0])["lower_bound"]
+    assert tm.eccentricity([1.0], [0.0])["eccentricity_um"] is None
+    assert tm.eccentricity([0.0, 4.0], [0.0, 180.0])["lower_bound"]
 
 
 def test_cut_length_from_passes():
     passes = pd.DataFrame({"pass_id": [0, 1, 2, 3], "motion": [0, 1, 1, 2],
                            "x0_mm": [0, 0, 3, 3], "y0_mm": [0, 0, 4, 4], "z0_mm": [50, 0, 0, 0],
                            "x1_mm": [0, 3, 3, 3], "y1_mm": [0, 4, 4, 4], "z1_mm": [0, 0, 0, 2]})
-    assert tp.cut_length_m(passes) == pytest.approx((5.0 + 0.0 + 2.0) / 1000)
+    assert tm.cut_length_m(passes) == pytest.approx((5.0 + 0.0 + 2.0) / 1000)
     cf = pd.DataFrame({"pass_id": [1, 2, 3], "is_cutting": [True, True, False]})
-    assert tp.cut_length_m(passes, cf) == pytest.approx(5.0 / 1000)
+    assert tm.cut_length_m(passes, cf) == pytest.approx(5.0 / 1000)
 
 
 # --------------------------------------------------------------------------------------------
@@ -273,7 +273,7 @@ def test_tool_not_in_field_and_no_images(tmp_path):
 def test_contact_angle_is_arccos_nz():
     q = np.radians([0.0, 30.0, 45.0, 90.0])
     n = np.column_stack([np.sin(q) * np.cos(1.0), np.sin(q) * np.sin(1.0), np.cos(q)]) * 3.0
-    np.testing.assert_allclose(tp.contact_angle_deg(n), [0.0, 30.0, 45.0, 90.0], atol=1e-9)
+    np.testing.assert_allclose(tm.contact_angle_deg(n), [0.0, 30.0, 45.0, 90.0], atol=1e-9)
 
 
 def _part_points(rng, left_fn):
@@ -302,7 +302,7 @@ def test_seed_002_example_two_um_left_at_45_becomes_a_dent():
     first = pd.DataFrame({"contact_deg": GRID, "error_um": 0.5 * np.sin(np.radians(4 * GRID))})
     left = lambda q: _plateau(q, 45.0, 2.0) + _plateau(q, 70.0, -1.0, flat=1.0)
     pts, dev, nrm = _part_points(rng, left)
-    out = tp.composite_profile(first, pts, dev, nrm)
+    out = tm.composite_profile(first, pts, dev, nrm)
     added = (out["error_um"] - out["first_um"]).to_numpy()
     i45 = int(np.flatnonzero(GRID == 45.0)[0])
     print("composite - first at 45°:", added[i45], "transitions:", out.attrs["transitions"])
@@ -323,13 +323,13 @@ def test_composite_when_part_was_cut_uncompensated():
     first_fn = lambda q: 1.5 * np.exp(-0.5 * ((np.asarray(q) - 30) / 5) ** 2)
     first = pd.DataFrame({"contact_deg": GRID, "error_um": first_fn(GRID)})
     pts, dev, nrm = _part_points(rng, lambda q: first_fn(q) + _plateau(q, 45.0, 2.0))
-    out = tp.composite_profile(first, pts, dev, nrm, first_applied=False)
+    out = tm.composite_profile(first, pts, dev, nrm, first_applied=False)
     added = (out["error_um"] - out["first_um"]).to_numpy()
     assert added[GRID == 45.0][0] == pytest.approx(2.0, abs=0.1)
     assert len(out.attrs["transitions"]) == 1            # the tool's own 30° dent is not counted twice
     down = np.array([[0.0, 0.0, 0.0]])
     with pytest.raises(InputError, match="zero normal"):
-        tp.composite_profile(first, down, [1.0], down)
+        tm.composite_profile(first, down, [1.0], down)
 
 
 def _cut_bowl(tool_error_um, offset_um, t_deg, R=3.0, Rw=10.0):
@@ -376,7 +376,7 @@ def test_composite_closed_loop_removes_the_left_material():
     tj = np.radians(t_meas)
     normals = np.column_stack([-np.sin(tj), np.zeros_like(tj), np.cos(tj)])
     points = np.column_stack([10 * np.sin(tj), np.zeros_like(tj), 10 - 10 * np.cos(tj)])
-    comp = tp.composite_profile(first, points, cut1, normals)
+    comp = tm.composite_profile(first, points, cut1, normals)
     cut2 = _cut_bowl(tool_err, lambda q: lift(q) - np.interp(q, GRID, comp["error_um"]), t_meas)
     print(f"closed loop: left at 45° {cut1[at45][0]:.3f} → {cut2[at45][0]:.3f} µm; "
           f"max |err| {np.abs(cut1).max():.3f} → {np.abs(cut2).max():.3f} µm")
@@ -396,18 +396,18 @@ def test_16bit_colour_images_and_angles_from_name_order(tmp_path):
         elif k == 1:
             im = cv2.cvtColor(im, cv2.COLOR_GRAY2BGR)
         cv2.imwrite(str(d / f"img{k}.png"), im)
-    paths = tp.list_images(d)
-    angles, source = tp.spindle_angles(paths)
+    paths = tm.list_images(d)
+    angles, source = tm.spindle_angles(paths)
     np.testing.assert_allclose(angles, [0.0, 120.0, 240.0])
     assert source == "assumed evenly spaced"
-    assert tp.load_image(paths[0])[1] == 65535.0
+    assert tm.load_image(paths[0])[1] == 65535.0
     res = tool_profile_command(d, UM_PER_PX, D_MM, "ball", tmp_path / "p.csv")
     assert abs(res["eccentricity_um"] - 5.0) <= 1.0
     assert abs((res["eccentricity"]["phase_deg"] + 180) % 360 - 180) <= 5.0
     mixed = d / "t1_090deg.png"
     cv2.imwrite(str(mixed), render(lambda q: R_PX + 0 * q))
     with pytest.raises(InputError, match="img0.png: no spindle angle"):
-        tp.spindle_angles(tp.list_images(d))
+        tm.spindle_angles(tm.list_images(d))
 
 
 @pytest.mark.parametrize("n, noise", [(60, 1.0), (300, 0.5), (3000, 0.3)])
@@ -419,6 +419,6 @@ def test_composite_adds_nothing_for_pure_noise(n, noise):
         rng = np.random.default_rng(seed)
         q = np.radians(rng.uniform(0, 90, n))
         normals = np.column_stack([np.sin(q), np.zeros(n), np.cos(q)])
-        out = tp.composite_profile(first, np.zeros((n, 3)), rng.normal(0, noise, n), normals)
+        out = tm.composite_profile(first, np.zeros((n, 3)), rng.normal(0, noise, n), normals)
         assert out.attrs["transitions"] == []
         np.testing.assert_array_equal(out["error_um"], out["first_um"])

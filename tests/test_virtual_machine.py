@@ -6,7 +6,7 @@ import numpy as np
 import pyarrow as pa
 import pytest
 
-from stages.virtual_machine import VirtualMachine
+from stages.virtual_machine import STEP_SLACK, VirtualMachine
 
 MAT = {"ktc": 2000.0, "krc": 700.0, "kac": 300.0, "kte": 0.0, "kre": 0.0, "kae": 0.0}
 RIGID = {"frf": {a: [{"fn_hz": 900.0, "zeta": 0.03, "k_n_per_um": 1e9}] for a in "xy"}}
@@ -153,8 +153,7 @@ def test_tooth_passages_beyond_a_short_pass_carry_the_neighbours_deflection():
     dx = np.zeros((3, 192))
     dy = np.zeros((3, 192))
     dy[0] = -30.0                                    # pass 0 pushed 30 µm towards the side (−y)
-    vm._defl_cache[(0.0, 0.0)] = (dx, dy)
-    got = vm.probe(pt, nrm)[0]
+    got = vm.probe(pt, nrm, deflection=(dx, dy))[0]
     # the deepest passage on pass 0: the point's tooth passages are 0.1 mm apart (2 flutes), the
     # last ones on pass 0 at 0.025 + k·0.1 mm before x = 5.025 (k = 0: x 5.0 is pass 0's end);
     # a passage Δ away along x reaches the side at y = −R + (R − √(R² − Δ²)) shifted by −30 µm
@@ -192,13 +191,11 @@ def test_a_neighbour_round_a_corner_is_read_in_its_own_feed_frame():
     dx = np.zeros((2, 192))
     dy = np.zeros((2, 192))
     dy[1] = np.where(near(180.0 + lag) | near(lag), -150.0, 0.0)
-    vm._defl_cache[(0.0, 0.0)] = (dx, dy)
-    got = vm.probe(np.array([[0.025, -5.0, 4.0]]), np.array([[0.0, 1.0, 0.0]]))[0]
+    got = vm.probe(np.array([[0.025, -5.0, 4.0]]), np.array([[0.0, 1.0, 0.0]]), deflection=(dx, dy))[0]
     assert got < -30.0
     # the same deflection in the short pass's frame (shifted by the 90° turn) leaves the point alone
     dy[1] = np.where(near(90.0 + lag) | near(270.0 + lag), -150.0, 0.0)
-    vm._defl_cache[(0.0, 0.0)] = (dx, dy)
-    assert vm.probe(np.array([[0.025, -5.0, 4.0]]), np.array([[0.0, 1.0, 0.0]]))[0] > -1.0
+    assert vm.probe(np.array([[0.025, -5.0, 4.0]]), np.array([[0.0, 1.0, 0.0]]), deflection=(dx, dy))[0] > -1.0
 
 
 def _passes(segments, feed=1000.0, rpm=10000.0):
@@ -247,14 +244,13 @@ def test_a_deflection_step_makes_the_machined_surface_independent_of_the_blocks(
     np.testing.assert_allclose(stepped[full], per_pass[full], atol=0.5)   # the full slot's as before
 
 
-def test_moving_via_points_by_a_micrometre_moves_the_machined_surface_by_about_that(monkeypatch):
+def test_moving_via_points_by_a_micrometre_moves_the_machined_surface_by_about_that():
     """The line of the test above written as 40 blocks of 0.5 mm (a program with a via point every
     0.5 mm), and the same with its via points moved ±1 µm in z, alternately (a corrected program):
     every block grows by 4 nm. The machine with a deflection every 0.5 mm must cut the moved program
     within about the move of the other (|n_z| = 0.92, the engagement's change is a few nm), not at
     another resolution: with a piece count rounded up for a nanometre over the step, every block is
     cut into two pieces and, where the earlier pass's clearing ends (x −2), the surface jumps."""
-    import stages.virtual_machine as vm_mod
     soft = {"frf": {a: [{"fn_hz": 900.0, "zeta": 0.03, "k_n_per_um": 1.0}] for a in "xy"}}
     box = {"box": [-30, -30, -20, 30, 30, 0]}
     earlier = ((-10.0, 3.0, -1.0), (-2.0, 3.0, -1.0))
@@ -268,19 +264,17 @@ def test_moving_via_points_by_a_micrometre_moves_the_machined_surface_by_about_t
     pts = np.stack([x, np.full_like(x, -2.0), np.full_like(x, 4.0 - np.sqrt(21.0))], 1)
     nrm = np.tile(np.array([0.0, 2.0, np.sqrt(21.0)]) / 5.0, (len(x), 1))
 
-    def gap():
-        e = [VirtualMachine(prog, tool(), MAT, soft, box, deflection_step_mm=0.5).probe(pts, nrm)
+    def gap(slack):
+        e = [VirtualMachine(prog, tool(), MAT, soft, box, deflection_step_mm=0.5, step_slack=slack).probe(pts, nrm)
              for prog in (straight, moved)]
         return np.abs(e[1] - e[0]).max()
-    assert gap() <= 0.92 + 0.1
-    monkeypatch.setattr(vm_mod, "STEP_SLACK", 1e-9)     # the rule before: any excess is a piece more
-    assert gap() > 1.3
+    assert gap(STEP_SLACK) <= 0.92 + 0.1
+    assert gap(1e-9) > 1.3                              # the rule before: any excess is a piece more
 
 
-def test_the_engagement_is_the_same_with_and_without_testing_the_nearest_sub_segments_first(monkeypatch):
+def test_the_engagement_is_the_same_with_and_without_testing_the_nearest_sub_segments_first():
     """The nearest-first test is a speed-up only: a zig-zag raster over a box, with climbs and
     stepped depths, engages exactly the same micro-edges as every earlier sub-segment in reach."""
-    import stages.virtual_machine as vm_mod
     segs, y = [], 0.0
     for i in range(6):
         z = -1.0 - 0.1 * i
@@ -289,9 +283,8 @@ def test_the_engagement_is_the_same_with_and_without_testing_the_nearest_sub_seg
         y += 0.7
     passes = _passes(segs)
     box = {"box": [-30, -30, -20, 30, 30, 0]}
-    fast = VirtualMachine(passes, tool(), MAT, RIGID, box, deflection_step_mm=1.0)._engaged
-    monkeypatch.setattr(vm_mod, "K_NEAR", 0)
-    brute = VirtualMachine(passes, tool(), MAT, RIGID, box, deflection_step_mm=1.0)._engaged
+    fast = VirtualMachine(passes, tool(), MAT, RIGID, box, deflection_step_mm=1.0).engaged
+    brute = VirtualMachine(passes, tool(), MAT, RIGID, box, deflection_step_mm=1.0, k_near=0).engaged
     assert np.unpackbits(brute).sum() > 1000            # the raster engages something
     np.testing.assert_array_equal(fast, brute)
 
@@ -324,3 +317,25 @@ def test_the_spindle_s_start_angle_repeats_after_a_tooth_period_without_runout_a
         np.testing.assert_allclose(tooth, e0, atol=1e-3)    # the periodic deflection's last sampled revolution
     else:
         assert np.abs(tooth - e0).max() > 1.0
+
+
+def test_the_machine_imports_nothing_of_the_prediction():
+    """The machine is the independent check of the prediction (DESIGN §8.5): besides its own modules
+    it imports only ``stages.InputError``, ``stages.geometry`` (the cutter, path geometry) and
+    ``stages.tables``."""
+    import ast
+    from pathlib import Path
+    allowed = ("stages.virtual_machine.", "stages.geometry.", "stages.tables")
+    files = sorted((Path(__file__).resolve().parents[1] / "stages" / "virtual_machine").glob("*.py"))
+    assert len(files) > 1
+    for f in files:
+        for node in ast.walk(ast.parse(f.read_text())):
+            if isinstance(node, ast.ImportFrom):
+                names = [node.module] if node.module != "stages" else [f"stages.{a.name}" for a in node.names]
+            elif isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            else:
+                continue
+            for name in names:
+                if name.split(".")[0] == "stages":
+                    assert name == "stages.InputError" or name.startswith(allowed), f"{f.name} imports {name}"

@@ -1,7 +1,8 @@
 """``pipeline tool-profile``: tool contour, runout and envelope from a directory of silhouette images.
 
-One function, :func:`tool_profile_command`, does the whole job; the click command in
-``pipeline/cli.py`` only parses options and prints its summary. Outputs beside ``out_csv``:
+One function, :func:`tool_profile_command`, does the whole job (``images`` → ``silhouette`` →
+``profile``); the click command in ``pipeline/cli.py`` only parses options and prints its summary.
+Outputs beside ``out_csv``:
 
 - ``<name>.csv``: contact_deg, error_um (low-pass filtered, seed 002 CV2), error_raw_um (CV1);
   the tool-profile table of ``tool.profile`` (DESIGN §4);
@@ -20,7 +21,9 @@ from pathlib import Path
 import numpy as np
 
 from stages import InputError
-from stages import tool_profile as tp
+from stages.tool_measure.images import list_images, load_image, spindle_angles
+from stages.tool_measure.profile import measure_tool
+from stages.tool_measure.silhouette import measure_image_file, tool_radii_mm
 
 
 def tool_profile_command(images_dir, um_per_px, diameter_mm, tool_type="ball", out_csv="profile.csv", *,
@@ -45,7 +48,7 @@ def tool_profile_command(images_dir, um_per_px, diameter_mm, tool_type="ball", o
     cutoff_deg : float
         Low-pass cutoff (ISO 16610-21 Gaussian) for CV1 → CV2, degrees of contact angle.
     reference : "lsq" or "tip"
-        Axial placement of the ideal profile (see :func:`stages.tool_profile.measure_image`).
+        Axial placement of the ideal profile (see :func:`stages.tool_measure.silhouette.measure_image`).
     scale_tol : float
         Relative diameter mismatch above which an image is refused as being at the wrong scale.
     centre_z_px : float, optional
@@ -68,12 +71,12 @@ def tool_profile_command(images_dir, um_per_px, diameter_mm, tool_type="ball", o
         raise InputError(f"--um-per-px: must be > 0, got {um_per_px}")
     if not (diameter_mm and diameter_mm > 0):
         raise InputError(f"--diameter-mm: must be > 0, got {diameter_mm}")
-    paths = tp.list_images(images_dir)
-    angles, angle_source = tp.spindle_angles(paths)
-    measurements = [tp.measure_image_file(p, um_per_px, diameter_mm, tool_type, corner_radius_mm=corner_radius_mm,
-                                          reference=reference, scale_tol=scale_tol,
-                                          centre_z_px=centre_z_px) for p in paths]
-    profile, summary = tp.measure_tool(measurements, angles, um_per_px, cutoff_deg)
+    paths = list_images(images_dir)
+    angles, angle_source = spindle_angles(paths)
+    measurements = [measure_image_file(p, um_per_px, diameter_mm, tool_type, corner_radius_mm=corner_radius_mm,
+                                       reference=reference, scale_tol=scale_tol,
+                                       centre_z_px=centre_z_px) for p in paths]
+    profile, summary = measure_tool(measurements, angles, um_per_px, cutoff_deg)
 
     out_csv = Path(out_csv)
     out_json, out_png = out_csv.with_suffix(".json"), out_csv.with_suffix(".png")
@@ -104,7 +107,7 @@ def tool_profile_command(images_dir, um_per_px, diameter_mm, tool_type="ball", o
         table["contact_deg"] = table["contact_deg"].map("{:.1f}".format)
         table.to_csv(tmp[out_csv], index=False, float_format="%.4f")
         tmp[out_json].write_text(_json_text(summary))
-        _overlay_png(tmp[out_png], tp.load_image(paths[0])[0], measurements[0], profile, summary)
+        _overlay_png(tmp[out_png], load_image(paths[0])[0], measurements[0], profile, summary)
         for final, t in tmp.items():
             os.replace(t, final)
     finally:
@@ -137,8 +140,8 @@ def _overlay_png(path, grey, m0, profile, summary):
     um = summary["um_per_px"]
     q = np.radians(profile["contact_deg"].to_numpy())
     xc, zc = m0["centre_px"]
-    r0_px = 0.0 if summary["tool_type"] == "ball" else 1000 * (summary["diameter_mm"] / 2 - summary["corner_radius_mm"]) / um
-    rc_px = 1000 * (summary["diameter_mm"] / 2 if summary["tool_type"] == "ball" else summary["corner_radius_mm"]) / um
+    r0_mm, rc_mm = tool_radii_mm(summary["diameter_mm"], summary["tool_type"], summary["corner_radius_mm"])
+    r0_px, rc_px = 1000 * r0_mm / um, 1000 * rc_mm / um
 
     step = max(1, int(np.ceil(max(grey.shape) / 1200)))
     ax0.imshow(grey[::step, ::step], cmap="gray", extent=(-0.5, grey.shape[1] - 0.5, grey.shape[0] - 0.5, -0.5))
