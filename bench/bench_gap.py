@@ -29,8 +29,10 @@ def main():
     ap.add_argument("--points", type=int, default=100_000)
     args = ap.parse_args()
     from pipeline.config import load_workflow
-    from pipeline.gap import _meas_table, diagnose_points, make_predictor, run_tables
-    from stages.gap import associate
+    from pipeline.gap_jobs import make_predictor, run_tables
+    from stages.gap.associate import associate
+    from stages.gap.measurements import measurement_table
+    from stages.gap.predictor import diagnose_points
     from stages.virtual_machine import VirtualMachine
     spec = importlib.util.spec_from_file_location("mk", ROOT / "scripts" / "make_gap_samples.py")
     mk = importlib.util.module_from_spec(spec)
@@ -46,7 +48,7 @@ def main():
     vm = VirtualMachine(tabs["passes"], tool, wf.material.model_dump(), wf.machine.model_dump(), run._static["stock"][0])
     effect = {"thermal_drift": {"ax_um": 3.0, "ay_um": -4.0, "az_um": -12.0, "tau_s": 5.0}}
     err = vm.probe(pts, nrm, effect, 0.5, np.random.default_rng(1))
-    meas = _meas_table(np.arange(len(pts)), pts, nrm, err)
+    meas = measurement_table(np.arange(len(pts)), pts, nrm, err)
     t0 = time.perf_counter()
     F, rej = associate(meas, tabs["passes"], tabs.get("errors"), tool, 0.05, tabs.get("deflection"))
     t1 = time.perf_counter()
