@@ -11,7 +11,7 @@ second effect of 45–75 % of its RMS — a force scale (2–3.5 or its inverse)
 1795569132 case 81, 1795578753 case 102, 1795581749 case 87): a wear next to a force scale read as a
 drift after a geometry error was dropped (``stages.gap.diagnose.settle``), a wear next to a contour
 error read as a drift on held-out blocks (the pick's in-sample check), a wear next to a drift
-explaining too little beyond it (``stages.gap.fit.collinear_size``). Reported per case: named in
+explaining too little beyond it (``stages.gap.collinearity.collinear_size``). Reported per case: named in
 order of size, and the relative error of each effect's parameters (the blind check's measures).
 
     python bench/gap_pairs.py [--cases 3] [--seed N]
@@ -39,7 +39,8 @@ def main():
     ap.add_argument("--seed", type=int, default=None)
     args = ap.parse_args()
     from pipeline.config import load_workflow
-    from pipeline.gap_jobs import make_predictor, measurement_spec, program_tool, read_points, run_tables
+    from pipeline.gap_jobs import (make_predictor, measurement_spec, program_tool, read_points, run_tables,
+                                   workflow_stock)
     from stages.gap.associate import associate
     from stages.gap.blind import coefficient_error, param_error
     from stages.gap.calibration import apply_baseline, calibrate
@@ -53,10 +54,10 @@ def main():
     wf, base = load_workflow(wf_path)
     spec = measurement_spec(wf, base)
     t0 = time.perf_counter()
-    tabs, _, run = run_tables(wf_path, "errors")
+    tabs, _ = run_tables(wf_path, "errors")
     passes = tabs["passes"]
     tool = program_tool(wf, passes)
-    vm = VirtualMachine(passes, tool, wf.material.model_dump(), wf.machine.model_dump(), run._static["stock"][0])
+    vm = VirtualMachine(passes, tool, wf.material.model_dump(), wf.machine.model_dump(), workflow_stock(wf, base))
     pts, nrm = points_and_normals(read_points(spec.file, spec, require_deviation=False)[0])
     ids = np.arange(len(pts))
     predictor = make_predictor(tabs, wf, tool, workdir=Path(tempfile.mkdtemp(prefix="gap_pairs_")))

@@ -29,7 +29,7 @@ def main():
     args = ap.parse_args()
     import pyarrow as pa
     from pipeline.config import load_workflow
-    from pipeline.gap_jobs import measurement_spec, program_tool, read_points, run_tables
+    from pipeline.gap_jobs import measurement_spec, program_tool, read_points, run_tables, workflow_stock
     from stages.gap.associate import associate
     from stages.gap.calibration import apply_baseline
     from stages.gap.measurements import measurement_table, points_and_normals
@@ -37,12 +37,12 @@ def main():
     from stages.virtual_machine import VirtualMachine
     wf, base = load_workflow(args.workflow)
     spec = measurement_spec(wf, base)
-    tabs, _, run = run_tables(args.workflow, "errors")
+    tabs, _ = run_tables(args.workflow, "errors")
     passes = tabs["passes"]
     prog = passes.column("program_id").to_pylist()[0]
     sub = passes.filter(pa.compute.equal(passes.column("program_id"), prog))
     tool = program_tool(wf, sub)
-    vm = VirtualMachine(sub, tool, wf.material.model_dump(), wf.machine.model_dump(), run._static["stock"][0])
+    vm = VirtualMachine(sub, tool, wf.material.model_dump(), wf.machine.model_dump(), workflow_stock(wf, base))
     plan, _, _ = read_points(spec.file, spec, require_deviation=False)
     pts, nrm = points_and_normals(plan)
     err = vm.probe(pts, nrm, {}, args.noise_um, np.random.default_rng(1))

@@ -1,10 +1,8 @@
 """Gap jobs (issue 7, DESIGN §8): the ``simulate``, ``diagnose`` and ``blind-check`` commands.
 
-The engine runs the workflow (cached) up to the tables a command needs: ``split`` for the virtual
-machine, ``errors`` for the diagnosis (``stages.gap``). Outputs: ``<out>/tables/gap_points/`` and
-``gap_effects/<name>.parquet``; ``<out>/gap/``: summary.json, index.html, residual_map.png,
-rejected.csv, errors_updated.parquet (the prediction with the model effects found); for the blind
-check ``<out>/blind/summary.json``.
+The engine runs the workflow (cached) up to the tables a command needs (``split``, ``errors``); the
+diagnosis is ``stages.gap``. Writes ``<out>/tables/gap_{points,effects}/<name>.parquet``, ``<out>/gap/``
+(summary.json, index.html, residual_map.png, rejected.csv, errors_updated.parquet), ``<out>/blind/summary.json``.
 """
 from __future__ import annotations
 
@@ -32,8 +30,8 @@ from stages.virtual_machine import VirtualMachine, grid_plan, parse_effect
 
 
 def run_tables(workflow: str, until: str, out: Optional[str] = None, workers: Optional[int] = 1,
-               scheduler: Optional[str] = None) -> tuple[dict, Path, object]:
-    """Run the workflow up to ``until`` (cached) and read its tables: ({table: pa.Table}, out dir, run)."""
+               scheduler: Optional[str] = None) -> tuple[dict, Path]:
+    """Run the workflow up to ``until`` (cached) and read its tables: ({table: pa.Table}, out dir)."""
     from pipeline.engine import Run
     from pipeline.graph import mould_graph
     r = Run(workflow, mould_graph(), out=out, until=until)
@@ -49,7 +47,7 @@ def run_tables(workflow: str, until: str, out: Optional[str] = None, workers: Op
             tabs[name] = pa.concat_tables([pq.read_table(f) for f in files], promote_options="default")
     if "passes" not in tabs:
         raise InputError(f"{workflow}: the run wrote no passes")
-    return tabs, r.out, r
+    return tabs, r.out
 
 
 def measurement_spec(wf, base) -> Measurements:
@@ -75,6 +73,12 @@ def program_material(wf, tool: dict) -> dict:
     return wf.material_for(tool.get("t") if isinstance(wf.material, list) else None).model_dump()
 
 
+def workflow_stock(wf, base):
+    """The stock as the stages take it (the engine's source value): the mesh's path, or the box."""
+    s = wf.stock
+    return str(resolve(base, s).resolve()) if isinstance(s, str) else (None if s is None else s.model_dump())
+
+
 def read_points(path: str, spec: Measurements, require_deviation: bool = True):
     """``stages.gap.measurements.read_measurements`` with the workflow's column mapping and units."""
     return read_measurements(path, spec.columns, spec.length_unit, spec.deviation_unit,
@@ -93,7 +97,7 @@ def simulate(workflow: str, program: Optional[str], effects: list[str], noise_um
     """Machine the program(s) on the virtual machine with ``effects`` and write a measurement file."""
     wf, base = load_workflow(workflow)
     eff = dict(parse_effect(e) for e in effects)
-    tabs, outdir, run = run_tables(workflow, "split")
+    tabs, _ = run_tables(workflow, "split")
     passes = tabs["passes"]
     progs = list(dict.fromkeys(passes.column("program_id").to_pylist()))
     if program:
@@ -108,7 +112,7 @@ def simulate(workflow: str, program: Optional[str], effects: list[str], noise_um
     for prog in progs:
         sub = passes.filter(pa.compute.equal(passes.column("program_id"), prog))
         tool = program_tool(wf, sub)
-        vm = VirtualMachine(sub, tool, program_material(wf, tool), wf.machine.model_dump(), run._static["stock"][0])
+        vm = VirtualMachine(sub, tool, program_material(wf, tool), wf.machine.model_dump(), workflow_stock(wf, base))
         pieces.append(probe_program(vm, plan_pts, eff, noise_um, rng, grid_mm, sum(p.num_rows for p in pieces)))
     tab = schemas.check("measurements", pa.concat_tables(pieces))
     write_measurements(tab, out_file)
@@ -121,7 +125,7 @@ def diagnose_cmd(workflow: str, measurements: str, out: Optional[str] = None,
     t0 = time.perf_counter()
     wf, base = load_workflow(workflow)
     spec = measurement_spec(wf, base)
-    tabs, outdir, _ = run_tables(workflow, "errors")
+    tabs, outdir = run_tables(workflow, "errors")
     outdir = Path(out) if out else outdir
     meas, rej, _ = read_points(measurements, spec)
     tool = program_tool(wf, tabs["passes"])
@@ -155,10 +159,8 @@ def diagnose_cmd(workflow: str, measurements: str, out: Optional[str] = None,
         pq.write_table(schemas.check(tname, tab), d / f"{name}.parquet.tmp")
         (d / f"{name}.parquet.tmp").replace(d / f"{name}.parquet")
     rejected = [(i, ln, why) for i, ln, why in rej.rows] + [(i, None, why) for i, why in rej2]
-    with open(gdir / "rejected.csv", "w") as f:
-        f.write("point_id,line,reason\n")
-        for i, ln, why in rejected:
-            f.write(f"{i},{'' if ln is None else ln},\"{why}\"\n")
+    (gdir / "rejected.csv").write_text("point_id,line,reason\n" + "".join(
+        f"{i},{'' if ln is None else ln},\"{why}\"\n" for i, ln, why in rejected))
     summary = public_summary(res)
     summary.update({"measurements": str(measurements), "n_rejected": len(rejected),
                     "timing_s": {"associate": t1 - t0, "diagnose": t2 - t1}})
@@ -172,13 +174,13 @@ def blind_check(workflow: str, cases: int, seed: int, out: Optional[str] = None,
     """Random effect (or none) per case, simulated on the virtual machine, diagnosed blind."""
     wf, base = load_workflow(workflow)
     spec = measurement_spec(wf, base)
-    tabs, outdir, run = run_tables(workflow, "errors")
+    tabs, outdir = run_tables(workflow, "errors")
     outdir = Path(out) if out else outdir
     passes = tabs["passes"]
     prog = passes.column("program_id").to_pylist()[0]
     sub = passes.filter(pa.compute.equal(passes.column("program_id"), prog))
     tool = program_tool(wf, sub)
-    vm = VirtualMachine(sub, tool, program_material(wf, tool), wf.machine.model_dump(), run._static["stock"][0])
+    vm = VirtualMachine(sub, tool, program_material(wf, tool), wf.machine.model_dump(), workflow_stock(wf, base))
     if spec.file:
         pts, nrm = points_and_normals(read_points(spec.file, spec, require_deviation=False)[0])
     else:
@@ -192,9 +194,6 @@ def blind_check(workflow: str, cases: int, seed: int, out: Optional[str] = None,
     summary["workflow"] = workflow
     bdir = outdir / "blind"
     bdir.mkdir(parents=True, exist_ok=True)
-    (bdir / "summary.json").write_text(json.dumps(summary, indent=2, default=_jsonable))
+    (bdir / "summary.json").write_text(json.dumps(summary, indent=2, default=lambda o: o.tolist() if isinstance(
+        o, (np.floating, np.integer, np.bool_, np.ndarray)) else str(o)))
     return summary
-
-
-def _jsonable(o):
-    return o.tolist() if isinstance(o, (np.floating, np.integer, np.bool_, np.ndarray)) else str(o)

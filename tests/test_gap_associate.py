@@ -10,21 +10,7 @@ import pytest
 
 from stages.gap.associate import associate, predicted_at_points
 from stages.gap.measurements import measurement_table
-from stages.nc.moves import split_blocks
-from stages.nc.reader import parse_program
-
-
-def _wall_program(offset_um):
-    """Ball Ø10 along +x at y = 0, the wall on its −y side at y = −5 (n = +y, q = 90°): a long pass
-    A (x 0–10), a 0.05 mm pass B, a long pass C (x 10.05–20, moved away from the wall by
-    ``offset_um``). F1000 S10000: 0.1 mm of feed per revolution, B shorter than it."""
-    off = offset_um * 1e-3
-    src = (f"%\nO1\nT1 M6\nS10000 M3\nG0 X0 Y0 Z5\nG1 Z0 F1000\nX10\nX10.05\nX10.05 Y{off:.4f}\n"
-           f"X20 Y{off:.4f}\nG0 Z5\nM30\n%\n").encode()
-    blocks, _ = parse_program(src, "wall.nc", "w")
-    split = {"split": {"chord_tol_mm": 0.001, "max_pass_mm": 50.0, "merge_max_mm": 0.0},
-             "machine": {"rapid_mm_min": 30000.0}, "tool": {"type": "ball", "diameter_mm": 10.0}}
-    return split_blocks(blocks, split)
+from tests.ncprograms import wall_program
 
 
 @pytest.mark.parametrize("offset_um", [0.0, 3.0, 8.0])
@@ -42,7 +28,7 @@ def test_predicted_error_is_the_deepest_tooth_passage_of_the_neighbouring_passes
     deflection cannot change at a vertex, so every point keeps its own pass's error."""
     R10 = 5.0
     off = offset_um * 1e-3
-    passes = _wall_program(offset_um)
+    passes = wall_program(offset_um)
     pid = passes.column("pass_id").to_numpy()
     x0, x1 = passes.column("x0_mm").to_numpy(), passes.column("x1_mm").to_numpy()
     cut = (passes.column("motion").to_numpy() == 1) & (passes.column("z0_mm").to_numpy() == 0) \

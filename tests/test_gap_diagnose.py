@@ -13,7 +13,8 @@ from scipy.stats import chi2
 
 from stages.gap.diagnose import diagnose
 from stages.gap.effects import LIMITS, Effect, beyond_limits, catalogue
-from stages.gap.fit import ALPHA, AMBIGUOUS_RHO
+from stages.gap.collinearity import AMBIGUOUS_RHO
+from stages.gap.fit import ALPHA
 from stages.gap.uncertainty import detection_limits
 from tests.gap_helpers import associated, brute_force_features, fresh_rng, rms, sample, signature
 

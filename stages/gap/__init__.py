@@ -9,7 +9,8 @@ Plain functions over numpy arrays. The measured points become a features dict ``
 | ``associate`` | point → pass association, features, the prediction at the points (deepest tooth passage) |
 | ``effects`` | the effect catalogue: signatures, parameters, physical limits |
 | ``servo`` | the servo lag as the envelope of discrete tooth passages near corners |
-| ``fit`` | grid and joint fits, spatial blocks and folds, held-out prediction, noise, collinearity |
+| ``fit`` | grid and joint fits, spatial blocks and folds, held-out prediction, noise |
+| ``collinearity`` | an effect next to others: its own contribution, canonical correlation, the size test |
 | ``diagnose`` | the selection loop (greedy, swap, backward check) and the "where" blocks |
 | ``uncertainty`` | the final joint fit, standard errors, detection limits, ambiguity |
 | ``calibration`` | a reference part: force scale, corner floor, model floor as the baseline |

@@ -201,16 +201,7 @@ def runout_effective(true: dict, flutes: int) -> float:
 
 
 def check_kinds(kinds):
-    """The effect kinds the blind check cycles through, checked (None: all).
-
-    Parameters
-    ----------
-    kinds : list of str or None
-
-    Returns
-    -------
-    list of str or None
-    """
+    """The effect kinds (list of str) the blind check cycles through, checked; None: all."""
     if not kinds:
         return None
     bad = [k for k in kinds if k != "none" and k not in EFFECTS]

@@ -21,8 +21,8 @@ import numpy as np
 from scipy.stats import chi2
 
 from stages.gap.effects import beyond_limits, catalogue
-from stages.gap.fit import (ALPHA, acting_rms, blocks, collinear_size, collinearity, cv_predict, fit_joint, folds,
-                            insample_fit, insample_sse, noise_sigma, params_of, rms, shrink_where_acting)
+from stages.gap.collinearity import acting_rms, collinear_size, collinearity, insample_fit, insample_sse
+from stages.gap.fit import ALPHA, blocks, cv_predict, fit_joint, folds, noise_sigma, params_of, rms, shrink_where_acting
 from stages.gap.uncertainty import ambiguous_with, detection_limits, final_fit, param_uncertainty
 
 MAX_EFFECTS = 3
@@ -172,13 +172,9 @@ def settle(F, y, fold, cat: list, chosen: list, sse_base: float, base_pred: np.n
 
     Parameters
     ----------
-    F : dict
-        Features of n points.
-    y : (n,) ndarray
-        Residual (µm).
-    fold : (n,) int ndarray
+    F, y, fold, chosen
+        As in ``stages.gap.fit``.
     cat : list of Effect
-    chosen : list of (Effect, tuple)
     sse_base : float
         Held-out SSE of ``chosen`` (µm²).
     base_pred : (n,) ndarray
@@ -304,12 +300,8 @@ def where(F, y, sigma: float, blk: np.ndarray, z: float = 3.0, top: int = 20) ->
 
     Parameters
     ----------
-    F : dict
-        Features of n points.
-    y : (n,) ndarray
-        Residual (µm).
-    sigma : float
-        Probe noise σ (µm).
+    F, y, sigma
+        As in ``stages.gap.fit``.
     blk : (n,) int ndarray
         Spatial block of each point (``stages.gap.fit.blocks``).
     z : float

@@ -1,9 +1,16 @@
 """Fitting the effects to the residual: grid and joint fits, held-out folds over spatial blocks,
-the probe noise, and the size and collinearity of an effect next to others.
+held-out predictions, the probe noise.
 
-An effect list is ``[(Effect, th)]`` (``stages.gap.effects``; th its nonlinear value) with its
-amplitudes ``beta`` (p,) concatenated in the same order. ``F`` is the features dict of
-``stages.gap.associate.associate`` ((n,) arrays), ``y`` (n,) the residual being explained (µm).
+Parameters shared by the functions of the fit, the diagnosis and the uncertainty modules
+(``stages.gap.fit``, ``collinearity``, ``diagnose``, ``uncertainty``, ``servo``)::
+
+    F : dict                 features of n measured points ((n,) arrays, ``stages.gap.associate.associate``)
+    y : (n,) ndarray         the residual being explained (µm)
+    train, mask : (n,) bool  the points fitted on
+    fold : (n,) int          held-out fold of each point (``folds``)
+    chosen, effects : list   [(Effect, th)]: effects with their nonlinear values (``stages.gap.effects``)
+    beta : (p,) ndarray      their amplitudes, concatenated in the same order
+    sigma : float            probe noise σ (µm)
 """
 from __future__ import annotations
 
@@ -16,7 +23,6 @@ from stages.gap.effects import NONNEG, Effect
 from stages.gap.servo import refine_servo
 
 ALPHA = 1e-3          # false-claim rate of the per-effect test (a priori, not tuned)
-AMBIGUOUS_RHO = 0.95  # reported as ambiguous: the chosen effect's signatures explain ≥ 90 % of the other's
 K_FOLDS = 5
 
 
@@ -29,14 +35,8 @@ def fit_effects(F, y, train, chosen: list, cand: Effect):
 
     Parameters
     ----------
-    F : dict
-        Features of n points.
-    y : (n,) ndarray
-        Residual (µm).
-    train : (n,) bool ndarray
-        Points fitted on.
-    chosen : list of (Effect, tuple)
-        Effects already chosen, their nonlinear values held.
+    F, y, train, chosen
+        As in the module docstring.
     cand : Effect
         The candidate.
 
@@ -135,10 +135,8 @@ def noise_sigma(F, y) -> float:
 
     Parameters
     ----------
-    F : dict
-        Features sorted along the path (``program_id``, ``x_mm, y_mm, z_mm``: (n,)).
-    y : (n,) ndarray
-        Residual (µm).
+    F, y
+        As in the module docstring.
 
     Returns
     -------
@@ -185,14 +183,8 @@ def fit_joint(F, y, train, chosen: list, cand: Effect):
 
     Parameters
     ----------
-    F : dict
-        Features of n points.
-    y : (n,) ndarray
-        Residual (µm).
-    train : (n,) bool ndarray
-        Points fitted on.
-    chosen : list of (Effect, tuple)
-        Effects already chosen.
+    F, y, train, chosen
+        As in the module docstring.
     cand : Effect
         The effect added.
 
@@ -226,110 +218,6 @@ def fit_joint(F, y, train, chosen: list, cand: Effect):
     return chosen, th, beta
 
 
-def insample_fit(F, y, chosen: list, cand: Effect) -> tuple[float, float, float]:
-    """``chosen`` + ``cand`` fitted on all points (``fit_joint``): (SSE, RMS of the candidate's own
-    contribution where it acts, its signature's canonical correlation with the chosen effects'
-    at the fitted values). The SSE is the in-sample side of a comparison between candidates whose
-    signatures are nearly collinear (``stages.gap.diagnose``); the contribution is the size of
-    such a candidate.
-
-    Parameters
-    ----------
-    F : dict
-        Features of n points.
-    y : (n,) ndarray
-        Residual (µm).
-    chosen : list of (Effect, tuple)
-    cand : Effect
-
-    Returns
-    -------
-    sse : float
-        µm².
-    own_rms : float
-        µm (``acting_rms`` of the candidate's contribution).
-    rho : float
-        Canonical correlation (``collinearity``).
-    """
-    ch, th, beta = fit_joint(F, y, np.ones(len(y), bool), chosen, cand)
-    r = y - predict_effects(F, ch + [(cand, th)], beta)
-    k = sum(e.n_lin for e, _ in ch)
-    return float(r @ r), acting_rms(cand.basis(F, th) @ beta[k:]), collinearity(F, ch, cand.basis(F, th))
-
-
-def collinearity(F, chosen: list, X: np.ndarray) -> float:
-    """Largest canonical correlation between the columns of ``X`` and the chosen effects'
-    signatures (on the grid-search subset of the points); 0 when none is chosen.
-
-    Parameters
-    ----------
-    F : dict
-        Features of n points.
-    chosen : list of (Effect, tuple)
-    X : (n, k) ndarray
-        Signature columns.
-
-    Returns
-    -------
-    float
-        In [0, 1].
-    """
-    if not chosen or X.shape[1] == 0:
-        return 0.0
-    sub = grid_subset(np.ones(len(X), bool))
-    Qc = orthonormal_basis(np.hstack([e.basis(F, t) for e, t in chosen])[sub])
-    Qg = orthonormal_basis(X[sub])
-    if Qc.shape[1] == 0 or Qg.shape[1] == 0:
-        return 0.0
-    return float(min(np.linalg.svd(Qg.T @ Qc, compute_uv=False)[0], 1.0))
-
-
-def insample_sse(F, y, chosen: list, cand: Effect) -> float:
-    """SSE (µm²) of ``chosen`` + ``cand`` fitted on all points (``insample_fit``)."""
-    return insample_fit(F, y, chosen, cand)[0]
-
-
-def collinear_size(explained: float, own: float, rho: float) -> float:
-    """The size an effect is judged by (``stages.gap.diagnose``): the RMS it explains
-    beyond the other effects, or its own fitted contribution when its signature is nearly collinear
-    with theirs (canonical correlation ≥ ``AMBIGUOUS_RHO``).
-
-    Parameters
-    ----------
-    explained : float
-        RMS explained beyond the others (µm).
-    own : float
-        RMS of its own contribution where it acts (µm).
-    rho : float
-        Canonical correlation with the others' signatures.
-
-    Returns
-    -------
-    float
-        µm.
-    """
-    return max(explained, own) if rho >= AMBIGUOUS_RHO else explained
-
-
-def acting_rms(c: np.ndarray) -> float:
-    """RMS of a contribution where it acts: the points beyond a tenth of its peak.
-
-    Parameters
-    ----------
-    c : (n,) ndarray
-        Contribution (µm).
-
-    Returns
-    -------
-    float
-        µm (0 for an empty or zero contribution).
-    """
-    a = np.abs(c)
-    if not a.size or not a.max() > 0:
-        return 0.0
-    return float(np.sqrt(np.mean(c[a > 0.1 * a.max()] ** 2)))
-
-
 def cv_predict(F, y, fold, effects: list, cand: Optional[Effect] = None):
     """Held-out prediction of ``effects`` (+ cand): each fold predicted by the fit on the others.
 
@@ -338,13 +226,8 @@ def cv_predict(F, y, fold, effects: list, cand: Optional[Effect] = None):
 
     Parameters
     ----------
-    F : dict
-        Features of n points.
-    y : (n,) ndarray
-        Residual (µm).
-    fold : (n,) int ndarray
-        Fold of each point (``folds``).
-    effects : list of (Effect, tuple)
+    F, y, fold, effects
+        As in the module docstring.
     cand : Effect, optional
 
     Returns
@@ -372,12 +255,8 @@ def fold_fits(F, y, fold, chosen: list) -> list:
 
     Parameters
     ----------
-    F : dict
-        Features of n points.
-    y : (n,) ndarray
-        Residual (µm).
-    fold : (n,) int ndarray
-    chosen : list of (Effect, tuple)
+    F, y, fold, chosen
+        As in the module docstring.
 
     Returns
     -------
@@ -405,11 +284,8 @@ def predict_effects(F, chosen: list, beta: np.ndarray) -> np.ndarray:
 
     Parameters
     ----------
-    F : dict
-        Features of n points.
-    chosen : list of (Effect, tuple)
-    beta : (p,) ndarray
-        Their amplitudes in order.
+    F, chosen, beta
+        As in the module docstring.
 
     Returns
     -------
@@ -428,9 +304,8 @@ def params_of(effects: list, beta: np.ndarray) -> dict:
 
     Parameters
     ----------
-    effects : list of (Effect, tuple)
-    beta : (p,) ndarray
-        Their amplitudes in order.
+    effects, beta
+        As in the module docstring.
 
     Returns
     -------
@@ -442,24 +317,6 @@ def params_of(effects: list, beta: np.ndarray) -> dict:
         out[e.name] = e.params(beta[k:k + e.n_lin], th)
         k += e.n_lin
     return out
-
-
-def orthonormal_basis(X: np.ndarray) -> np.ndarray:
-    """Orthonormal basis of the columns of X (rank-revealing).
-
-    Parameters
-    ----------
-    X : (n, k) ndarray
-
-    Returns
-    -------
-    (n, r) ndarray
-        r ≤ k orthonormal columns spanning X's (singular values below 1e-9 of the largest dropped).
-    """
-    if X.shape[1] == 0:
-        return X
-    U, sv, _ = np.linalg.svd(X, full_matrices=False)
-    return U[:, sv > max(sv[0], 1e-300) * 1e-9] if sv.size and sv[0] > 0 else U[:, :0]
 
 
 def shrink_where_acting(y, after, pred) -> Optional[float]:

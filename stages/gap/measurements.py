@@ -238,7 +238,16 @@ def _read_csv(path: Path):
 
 
 def write_measurements(table: pa.Table, path) -> None:
-    """CSV (CMM-like header) or Parquet by suffix."""
+    """Write a ``measurements`` table: CSV (CMM-like header) or Parquet by the path's suffix.
+
+    Parameters
+    ----------
+    table : pa.Table
+        ``point_id``, ``x_mm, y_mm, z_mm`` (mm, 5 decimals in CSV), ``nx, ny, nz`` (6), ``err_um``
+        (µm, 4), ``t_s`` (s, 4).
+    path : str or Path
+        Written through a temporary file and renamed.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")

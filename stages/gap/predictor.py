@@ -157,17 +157,8 @@ class Predictor:
         return predicted_at_points(F, lambda prog: self._deflection(prog, scale, runout), tool, rows, runout_part)[0]
 
     def errors_table(self, params: dict) -> pa.Table:
-        """The ``errors`` table re-predicted with the model effects added (errors stage re-run).
-
-        Parameters
-        ----------
-        params : dict
-            {effect: reported parameters}.
-
-        Returns
-        -------
-        pa.Table
-        """
+        """The ``errors`` table (pa.Table) re-predicted with the model effects in ``params``
+        ({effect: reported parameters}) added: the errors stage re-run."""
         tool, scale = self.tool_for(params)
         out = []
         for prog in dict.fromkeys(self.tabs["passes"].column("program_id").to_pylist()):

@@ -10,18 +10,8 @@ from stages.gap.effects import LIMITS
 
 
 def public_summary(res: dict) -> dict:
-    """The JSON-able part of a diagnosis (``summary.json``).
-
-    Parameters
-    ----------
-    res : dict
-        ``stages.gap.predictor.diagnose_points`` result.
-
-    Returns
-    -------
-    dict
-        Its public keys, with ``held_out``, ``model_update`` and ``how_added``.
-    """
+    """The JSON-able part of a diagnosis ``res`` (``stages.gap.predictor.diagnose_points``) for
+    ``summary.json``: its public keys, with ``held_out``, ``model_update`` and ``how_added``."""
     keys = ("effect", "effects", "params", "params_se", "params_se_info", "params_cov", "where", "where_after",
             "sigma_um", "n_points", "n_blocks",
             "rms_before_um", "rms_after_um", "p95_before_um", "p95_after_um", "max_before_um", "max_after_um",
@@ -37,18 +27,8 @@ def public_summary(res: dict) -> dict:
 
 
 def model_update(params: dict) -> dict:
-    """How each chosen effect enters the simulation model (tool, machine, force model).
-
-    Parameters
-    ----------
-    params : dict
-        {effect: reported parameters}.
-
-    Returns
-    -------
-    dict
-        {model key: value or description}.
-    """
+    """How each chosen effect of ``params`` ({effect: reported parameters}) enters the simulation
+    model (tool, machine, force model): {model key: value or description}."""
     up = {}
     for name, p in params.items():
         if name == "runout":

@@ -7,7 +7,8 @@ envelope averaged over the unknown spindle phase; ``refine_servo`` re-fits a lag
 smooth form with the envelope.
 
 ``F`` throughout is the features dict of ``stages.gap.associate.associate`` (arrays of shape (n,)
-per measured point; ``F["_geometry"]`` the paths, ball radius and flutes when it was built there).
+per measured point; ``F["_geometry"]`` the paths, ball radius and flutes when it was built there);
+shared parameters as in ``stages.gap.fit``.
 """
 from __future__ import annotations
 
@@ -179,16 +180,8 @@ def refine_servo(F, y, mask, chosen: list, beta: np.ndarray):
 
     Parameters
     ----------
-    F : dict
-        Features of n points.
-    y : (n,) ndarray
-        Residual being fitted (µm).
-    mask : (n,) bool ndarray
-        Points fitted on.
-    chosen : list of (Effect, tuple)
-        The effects with their nonlinear values; the servo entry's is (λ,).
-    beta : (p,) ndarray
-        Their linear parameters, in order.
+    F, y, mask, chosen, beta
+        As in ``stages.gap.fit``.
 
     Returns
     -------

@@ -1,7 +1,7 @@
 """How well the points pin the chosen effects: the final joint fit, standard errors from the model
 linearised at it, and what the selection could have missed (detection limits, ambiguity).
 
-Effect lists, ``F`` and ``y`` as in ``stages.gap.fit``.
+Shared parameters (``F``, ``y``, ``chosen``, ``beta``, ``sigma`` …) as in ``stages.gap.fit``.
 """
 from __future__ import annotations
 
@@ -10,7 +10,8 @@ import math
 import numpy as np
 
 from stages.gap.effects import Effect
-from stages.gap.fit import ALPHA, AMBIGUOUS_RHO, grid_subset, orthonormal_basis, predict_effects, rms
+from stages.gap.collinearity import AMBIGUOUS_RHO, orthonormal_basis
+from stages.gap.fit import ALPHA, grid_subset, predict_effects, rms
 from stages.gap.servo import envelope_geometry, refine_servo, servo_signature
 
 SE_STEP = 1e-3        # central-difference step of a nonlinear parameter: SE_STEP × max(|value|, 1)
@@ -117,13 +118,8 @@ def polish_fit(F, y: np.ndarray, chosen: list, beta: np.ndarray, max_iter: int =
 
     Parameters
     ----------
-    F : dict
-        Features of n points.
-    y : (n,) ndarray
-        Residual (µm).
-    chosen : list of (Effect, tuple)
-    beta : (p,) ndarray
-        Their amplitudes.
+    F, y, chosen, beta
+        As in ``stages.gap.fit``.
     max_iter : int
 
     Returns
@@ -202,15 +198,10 @@ def param_uncertainty(F, y: np.ndarray, chosen: list, beta: np.ndarray, sigma: f
 
     Parameters
     ----------
-    F : dict
-        Features of n points.
-    y : (n,) ndarray
-        Residual (µm).
-    chosen : list of (Effect, tuple)
-    beta : (p,) ndarray
-        Their amplitudes.
+    F, y, chosen, beta
+        As in ``stages.gap.fit``.
     sigma : float
-        Probe noise σ (µm).
+        The probe noise estimate (µm); s is the larger of it and the residual RMS.
 
     Returns
     -------
@@ -286,11 +277,8 @@ def final_fit(F, y: np.ndarray, chosen: list):
 
     Parameters
     ----------
-    F : dict
-        Features of n points.
-    y : (n,) ndarray
-        Residual (µm).
-    chosen : list of (Effect, tuple)
+    F, y, chosen
+        As in ``stages.gap.fit``.
 
     Returns
     -------
@@ -322,14 +310,10 @@ def detection_limits(F, chosen: list, cat: list, sigma: float, floor_um: float =
 
     Parameters
     ----------
-    F : dict
-        Features of n points.
-    chosen : list of (Effect, tuple)
-        The effects found.
+    F, chosen, sigma
+        As in ``stages.gap.fit``.
     cat : list of Effect
         The catalogue.
-    sigma : float
-        Probe noise σ (µm).
     floor_um : float
         The model's own floor on a reference part (µm).
 
