@@ -29,24 +29,26 @@ def main():
     ap.add_argument("--points", type=int, default=100_000)
     args = ap.parse_args()
     from pipeline.config import load_workflow
-    from pipeline.gap import _meas_table, diagnose_points, make_predictor, run_tables
-    from stages.gap import associate
+    from pipeline.gap_jobs import make_predictor, run_tables, workflow_stock
+    from stages.gap.associate import associate
+    from stages.gap.measurements import measurement_table
+    from stages.gap.predictor import diagnose_points
     from stages.virtual_machine import VirtualMachine
     spec = importlib.util.spec_from_file_location("mk", ROOT / "scripts" / "make_gap_samples.py")
     mk = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mk)
     wf_path = str(ROOT / "workflows" / "gap.yaml")
-    wf, _ = load_workflow(wf_path)
-    tabs, _, run = run_tables(wf_path, "errors")
+    wf, base = load_workflow(wf_path)
+    tabs, _ = run_tables(wf_path, "errors")
     tool = wf.tool.model_dump()
     n_chords = sum(len(r) for r in mk.contact_points()) - 1
     k = int(np.ceil(args.points / (0.6 * n_chords)))        # ~68 % survive the envelope filter
     plan = mk.plan_rows(mk.contact_points(), fractions=tuple(np.linspace(0.02, 0.98, k)))[: args.points]
     pts, nrm = plan[:, :3], plan[:, 3:]
-    vm = VirtualMachine(tabs["passes"], tool, wf.material.model_dump(), wf.machine.model_dump(), run._static["stock"][0])
+    vm = VirtualMachine(tabs["passes"], tool, wf.material.model_dump(), wf.machine.model_dump(), workflow_stock(wf, base))
     effect = {"thermal_drift": {"ax_um": 3.0, "ay_um": -4.0, "az_um": -12.0, "tau_s": 5.0}}
     err = vm.probe(pts, nrm, effect, 0.5, np.random.default_rng(1))
-    meas = _meas_table(np.arange(len(pts)), pts, nrm, err)
+    meas = measurement_table(np.arange(len(pts)), pts, nrm, err)
     t0 = time.perf_counter()
     F, rej = associate(meas, tabs["passes"], tabs.get("errors"), tool, 0.05, tabs.get("deflection"))
     t1 = time.perf_counter()

@@ -29,23 +29,25 @@ def main():
     args = ap.parse_args()
     import pyarrow as pa
     from pipeline.config import load_workflow
-    from pipeline.gap import _meas_table, _spec, _tool, read_points, run_tables
-    from stages.gap import apply_baseline, associate, servo_smooth
+    from pipeline.gap_jobs import measurement_spec, program_tool, read_points, run_tables, workflow_stock
+    from stages.gap.associate import associate
+    from stages.gap.calibration import apply_baseline
+    from stages.gap.measurements import measurement_table, points_and_normals
+    from stages.gap.servo import servo_smooth
     from stages.virtual_machine import VirtualMachine
     wf, base = load_workflow(args.workflow)
-    spec = _spec(wf, base)
-    tabs, _, run = run_tables(args.workflow, "errors")
+    spec = measurement_spec(wf, base)
+    tabs, _ = run_tables(args.workflow, "errors")
     passes = tabs["passes"]
     prog = passes.column("program_id").to_pylist()[0]
     sub = passes.filter(pa.compute.equal(passes.column("program_id"), prog))
-    tool = _tool(wf, sub)
-    vm = VirtualMachine(sub, tool, wf.material.model_dump(), wf.machine.model_dump(), run._static["stock"][0])
+    tool = program_tool(wf, sub)
+    vm = VirtualMachine(sub, tool, wf.material.model_dump(), wf.machine.model_dump(), workflow_stock(wf, base))
     plan, _, _ = read_points(spec.file, spec, require_deviation=False)
-    pts = np.stack([plan.column(c).to_numpy() for c in ("x_mm", "y_mm", "z_mm")], 1)
-    nrm = np.stack([plan.column(c).to_numpy() for c in ("nx", "ny", "nz")], 1)
+    pts, nrm = points_and_normals(plan)
     err = vm.probe(pts, nrm, {}, args.noise_um, np.random.default_rng(1))
     t0 = time.perf_counter()
-    F, rej = associate(_meas_table(np.arange(len(pts)), pts, nrm, err), sub, tabs.get("errors"), tool,
+    F, rej = associate(measurement_table(np.arange(len(pts)), pts, nrm, err), sub, tabs.get("errors"), tool,
                        spec.off_part_mm, tabs.get("deflection"))
     t_assoc = time.perf_counter() - t0
     d = F["pred_deflection_um"]

@@ -9,7 +9,7 @@ predictions of every probe point against the machine's error:
 
 - **per pass**: the error the errors stage predicts at the pass's generating point (one number per
   pass, along its normal): what the correction stage uses;
-- **per point**: the prediction model evaluated at the point itself (``stages.gap.associate``, as
+- **per point**: the prediction model evaluated at the point itself (``stages.gap.associate.associate``, as
   the gap diagnosis predicts at measured points): the deflection of the point's nearest pass at the
   point's own contact and position angle, projected on the point's own normal, plus the shape error
   at its contact angle, and where the tooth passages of the neighbouring passes along the path sweep
@@ -72,7 +72,7 @@ def main():
     import pyarrow.parquet as pq
     import yaml
 
-    from stages import gap
+    from stages.gap.associate import associate
 
     ap = argparse.ArgumentParser()
     ap.add_argument("run", type=Path, help="a run directory of bench/closed_loop_pipeline_samples.py")
@@ -87,7 +87,7 @@ def main():
     meas = pa.table({"point_id": np.arange(len(pts), dtype=np.int64),
                      **{c: pts[c].to_numpy(float) for c in ("x_mm", "y_mm", "z_mm", "nx", "ny", "nz")},
                      "err_um": pts.err_original_um.to_numpy(float)})
-    F, rejected = gap.associate(meas, tables["passes"], tables["errors"], wf["tool"],
+    F, rejected = associate(meas, tables["passes"], tables["errors"], wf["tool"],
                                 deflection=tables["deflection"], off_part_mm=OFF_PART_MM)
     if rejected:
         print(f"{len(rejected)} probe points not associated (left out): e.g. {rejected[:3]}")
@@ -127,7 +127,7 @@ def main():
         if col not in pts.columns:
             raise SystemExit(f"--program {name!r}: points.parquet has no column {col}")
         t = {k: pq.read_table(f) for k, f in zip(("passes", "deflection", "errors"), files)}
-        Fk, rej_k = gap.associate(meas, t["passes"], t["errors"], wf["tool"], deflection=t["deflection"],
+        Fk, rej_k = associate(meas, t["passes"], t["errors"], wf["tool"], deflection=t["deflection"],
                                   off_part_mm=OFF_PART_MM)
         if len(rej_k) or not np.array_equal(np.sort(np.asarray(Fk["point_id"])), np.sort(rows)):
             raise SystemExit(f"--program {name!r}: {len(rej_k)} probe points not associated with its passes")

@@ -180,7 +180,7 @@ def calibrate_forces(workflow, cuts, t, forces_on, out):
 @click.option("--out", "out", required=True, type=click.Path(dir_okay=False), help="Measurement file (.csv or .parquet).")
 def simulate(workflow, program, effects, noise_um, seed, plan, out):
     """Machine WORKFLOW on the virtual machine and write probed deviations (gap job)."""
-    from pipeline.gap import simulate as sim
+    from pipeline.gap_jobs import simulate as sim
     try:
         r = sim(workflow, program, list(effects), noise_um, seed, out, plan=plan)
     except (WorkflowError, InputError) as e:
@@ -199,7 +199,7 @@ def simulate(workflow, program, effects, noise_um, seed, plan, out):
                    "calibrates the force-model scale, the corner floor and the model floor, as the blind check does.")
 def diagnose(workflow, measurements, out, reference):
     """Sim-to-real gap: where, which unmodelled effect, how far it shrinks (held-out)."""
-    from pipeline.gap import diagnose_cmd
+    from pipeline.gap_jobs import diagnose_cmd
     try:
         s = diagnose_cmd(workflow, measurements, out, reference=reference)
     except (WorkflowError, InputError) as e:
@@ -219,7 +219,7 @@ def diagnose(workflow, measurements, out, reference):
 @click.option("--out", "out", type=click.Path(file_okay=False))
 def blind_check(workflow, cases, pairs, seed, kinds, out):
     """Random effect (or none) per case on the virtual machine, diagnosed without telling it."""
-    from pipeline.gap import blind_check as bc
+    from pipeline.gap_jobs import blind_check as bc
     try:
         s = bc(workflow, cases, seed, out, pairs=pairs, kinds=kinds.split(",") if kinds else None,
                progress=lambda i, c: click.echo(f"case {i}: truth {list(c['truth']) or ['none']} found {c['found'] or ['none']} "

@@ -1,6 +1,6 @@
 import pyarrow as pa
 
-# DESIGN §6 `gap_effects`: one row per candidate effect, ranked on held-out blocks (stages/gap.py).
+# DESIGN §6 `gap_effects`: one row per candidate effect, ranked on held-out blocks (stages/gap/tables.py).
 SCHEMA = pa.schema([
     pa.field('effect', pa.string()),
     pa.field('params', pa.string()),               # JSON of the fitted parameters (chosen effects)

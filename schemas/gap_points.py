@@ -1,6 +1,6 @@
 import pyarrow as pa
 
-# DESIGN §6 `gap_points`: one row per measured point, with the features of the diagnosis (stages/gap.py).
+# DESIGN §6 `gap_points`: one row per measured point, with the features of the diagnosis (stages/gap/tables.py).
 SCHEMA = pa.schema([
     pa.field('point_id', pa.int64()),
     pa.field('program_id', pa.string()),

@@ -26,3 +26,18 @@ def raster_program(n_blocks: int, seed: int = 0, per_row: int = 400) -> bytes:
         n += 1
     lines += ["G0 Z50.", "M5", "M30", "%"]
     return ("\n".join(lines) + "\n").encode()
+
+
+def wall_program(offset_um: float = 0.0):
+    """Passes of a wall job: a ball Ø10 along +x at y = 0, the wall on its −y side at y = −5 (n = +y,
+    q = 90°): a long pass A (x 0–10), a 0.05 mm pass B, a long pass C (x 10.05–20, moved away from
+    the wall by ``offset_um``). F1000 S10000: 0.1 mm of feed per revolution, B shorter than it."""
+    from stages.nc.moves import split_blocks
+    from stages.nc.reader import parse_program
+    off = offset_um * 1e-3
+    src = (f"%\nO1\nT1 M6\nS10000 M3\nG0 X0 Y0 Z5\nG1 Z0 F1000\nX10\nX10.05\nX10.05 Y{off:.4f}\n"
+           f"X20 Y{off:.4f}\nG0 Z5\nM30\n%\n").encode()
+    blocks, _ = parse_program(src, "wall.nc", "w")
+    split = {"split": {"chord_tol_mm": 0.001, "max_pass_mm": 50.0, "merge_max_mm": 0.0},
+             "machine": {"rapid_mm_min": 30000.0}, "tool": {"type": "ball", "diameter_mm": 10.0}}
+    return split_blocks(blocks, split)

@@ -10,6 +10,7 @@ from stages import errors
 from stages.cutting import passages as pe
 from stages.nc.reader import parse_program
 from stages.nc.moves import split_blocks
+from tests.ncprograms import wall_program
 
 TOOLS = {"ball": (5.0, 5.0), "bull": (5.0, 1.5), "flat": (5.0, 0.0)}
 STICK = 20.0
@@ -77,18 +78,6 @@ def test_sweep_distance_against_sampled_positions(kind):
     assert np.all((t >= 0) & (t <= 1))
 
 
-def _wall_program(offset_um=0.0):
-    """Ball Ø10 along +x at y = 0, the wall on its −y side at y = −5 (n = +y at q = 90°): a long
-    pass A, a 0.05 mm pass B, a long pass C (C moved away from the wall by ``offset_um``)."""
-    off = offset_um * 1e-3
-    src = (f"%\nO1\nT1 M6\nS10000 M3\nG0 X0 Y0 Z5\nG1 Z0 F1000\nX10\nX10.05\nX10.05 Y{off:.4f}\n"
-           f"X20 Y{off:.4f}\nG0 Z5\nM30\n%\n").encode()
-    blocks, _ = parse_program(src, "wall.nc", "w")
-    split = {"split": {"chord_tol_mm": 0.001, "max_pass_mm": 50.0, "merge_max_mm": 0.0},
-             "machine": {"rapid_mm_min": 30000.0}, "tool": {"type": "ball", "diameter_mm": 10.0}}
-    return split_blocks(blocks, split)
-
-
 def _standoff_um(dx_mm, off_um, R=5.0):
     """Distance from a point on the wall (equator height) to a ball whose centre is dx along the
     wall and off_um farther from it."""
@@ -103,7 +92,7 @@ def test_short_pass_is_finished_by_the_deepest_neighbouring_passage(offset_um, b
     at the nearest end of each, 0.025 mm along the wall; C also ``offset_um`` farther from it). A
     point in the middle of A, farther than 1.5 revolutions from B, keeps A's 10 µm."""
     want = min(30.0, 10.0 + _standoff_um(0.025, 0.0), 5.0 + _standoff_um(0.025, offset_um))
-    passes = _wall_program(offset_um)
+    passes = wall_program(offset_um)
     pid = passes.column("pass_id").to_numpy()
     x0, x1 = passes.column("x0_mm").to_numpy(), passes.column("x1_mm").to_numpy()
     mot = passes.column("motion").to_numpy()

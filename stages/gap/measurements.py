@@ -238,7 +238,16 @@ def _read_csv(path: Path):
 
 
 def write_measurements(table: pa.Table, path) -> None:
-    """CSV (CMM-like header) or Parquet by suffix."""
+    """Write a ``measurements`` table: CSV (CMM-like header) or Parquet by the path's suffix.
+
+    Parameters
+    ----------
+    table : pa.Table
+        ``point_id``, ``x_mm, y_mm, z_mm`` (mm, 5 decimals in CSV), ``nx, ny, nz`` (6), ``err_um``
+        (µm, 4), ``t_s`` (s, 4).
+    path : str or Path
+        Written through a temporary file and renamed.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
@@ -253,3 +262,48 @@ def write_measurements(table: pa.Table, path) -> None:
                 f.write(f"{d['point_id'][i]},{d['x_mm'][i]:.5f},{d['y_mm'][i]:.5f},{d['z_mm'][i]:.5f},"
                         f"{d['nx'][i]:.6f},{d['ny'][i]:.6f},{d['nz'][i]:.6f},{d['err_um'][i]:.4f},{d['t_s'][i]:.4f}\n")
     tmp.replace(path)
+
+
+def points_and_normals(table: pa.Table) -> tuple[np.ndarray, np.ndarray]:
+    """The points and normals of a ``measurements`` table (or plan).
+
+    Parameters
+    ----------
+    table : pa.Table
+        With ``x_mm, y_mm, z_mm, nx, ny, nz``.
+
+    Returns
+    -------
+    pts : (n, 3) ndarray
+        mm.
+    nrm : (n, 3) ndarray
+        Unit normals.
+    """
+    pts = np.stack([table.column(c).to_numpy() for c in ("x_mm", "y_mm", "z_mm")], 1)
+    nrm = np.stack([table.column(c).to_numpy() for c in ("nx", "ny", "nz")], 1)
+    return pts, nrm
+
+
+def measurement_table(ids, pts, nrm, err, t=None) -> pa.Table:
+    """A ``measurements`` table from arrays.
+
+    Parameters
+    ----------
+    ids : (n,) int array-like
+        Point ids.
+    pts : (n, 3) ndarray
+        Points (mm).
+    nrm : (n, 3) ndarray
+        Unit normals.
+    err : (n,) ndarray
+        Deviation along the normal (µm, + = material left).
+    t : (n,) ndarray, optional
+        Time stamps (s); NaN when None.
+
+    Returns
+    -------
+    pa.Table
+    """
+    t = np.full(len(err), np.nan) if t is None else t
+    return pa.table({"point_id": pa.array(np.asarray(ids).astype(np.int64)), "x_mm": pts[:, 0], "y_mm": pts[:, 1],
+                     "z_mm": pts[:, 2], "nx": nrm[:, 0], "ny": nrm[:, 1], "nz": nrm[:, 2], "err_um": err, "t_s": t})
