@@ -98,9 +98,9 @@ class Executor:
             return
         from distributed import as_completed
         client = self.client or self._connect()
-        n_sh = max(1, stage.shards)
-        futs, left, recs = {}, {}, {}
+        futs, left, recs, n_of = {}, {}, {}, {}
         for part, key, params, specs in todo:
+            n_sh = n_of[key] = stage.shard_count(specs, params)
             for i in range(n_sh):
                 shard = None if n_sh == 1 else (i, n_sh)
                 k = key if n_sh == 1 else shard_key(key, i, n_sh)
@@ -121,7 +121,7 @@ class Executor:
                 left[key] -= 1
                 if left[key] == 0:
                     r = recs.pop(key)
-                    yield part, key, (r[0] if n_sh == 1 else _join_shards(stage, cache, key, n_sh, r))
+                    yield part, key, (r[0] if n_of[key] == 1 else _join_shards(stage, cache, key, n_of[key], r))
         finally:
             meter.close()
 

@@ -27,15 +27,27 @@ class Stage:
     inputs: tuple
     outputs: tuple
     params: tuple
-    shards: int = 1                  # tasks per partition (joined with the module's combine_shards)
+    # tasks per partition, joined with the module's combine_shards: a number, or the module's
+    # ``shards(rows, params)`` given the row counts of the partition's input tables and its parameters
+    shards: object = 1
 
     @classmethod
     def of(cls, module) -> "Stage":
         return cls(module.NAME, module.__name__, str(module.VERSION), tuple(module.INPUTS),
-                   tuple(module.OUTPUTS), tuple(module.PARAMS), int(getattr(module, "SHARDS", 1)))
+                   tuple(module.OUTPUTS), tuple(module.PARAMS), getattr(module, "shards", None)
+                   or int(getattr(module, "SHARDS", 1)))
 
     def load(self):
         return importlib.import_module(self.module)
+
+    def shard_count(self, specs: dict, params: dict) -> int:
+        """Tasks for one partition whose inputs are ``specs`` (name → (kind, path or value))."""
+        if not callable(self.shards):
+            return max(1, int(self.shards))
+        import pyarrow.parquet as pq
+        rows = {name.partition("@")[0]: pq.ParquetFile(v).metadata.num_rows
+                for name, (kind, v) in specs.items() if kind == "table"}
+        return max(1, int(self.shards(rows, params)))
 
 
 @dataclass(frozen=True)
@@ -86,11 +98,9 @@ class Graph:
 
 def mould_graph() -> Graph:
     """The main job: predict every finishing pass and correct the programs (workflows/mould.yaml)."""
-    from stages import (angle_prune, correct, correct_blocks, cut_filter, deflection, errors, forces,
-                        generating, parse, split)
+    from stages import correct, correct_blocks, deflection, errors, forces, parse, scan, split
     from stages.nc.output import corrected_programs
-    main = tuple(Stage.of(m) for m in (parse, split, cut_filter, angle_prune, generating, forces,
-                                       deflection, errors, correct))
+    main = tuple(Stage.of(m) for m in (parse, split, scan, forces, deflection, errors, correct))
     rounds = Repeat(stages=(Stage.of(correct_blocks),) + main[1:], until=correct.converged,
                     until_table="corrected", max_rounds="correct.max_iter", record=correct.round_record,
                     record_inputs=("errors", "corrected", "passes", "passes@first"), keep_last=("corrected",))

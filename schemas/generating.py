@@ -12,8 +12,8 @@ SCHEMA = pa.schema([
     pa.field('nx', pa.float64()),
     pa.field('ny', pa.float64()),
     pa.field('nz', pa.float64()),
-    pa.field('n_px', pa.int32()),
-    pa.field('view', pa.string()),
+    pa.field('n_px', pa.int32()),       # strip points of the tool at the prediction point that survive
+    pa.field('view', pa.string()),       # "strip": found on the tool's strip; "none": the pass leaves no surface
     # a second contact of the pass with the design surface (a ball in a vertical corner finishes
     # both walls, one on a floor beside a wall its foot): NaN and 0 where there is none
     pa.field('gen2_x_mm', pa.float64()),

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages import angle_prune, cut_filter, deflection, errors, forces, generating
+from stages import deflection, errors, forces, scan
 from tests.cylinder_case import TOOL, cylinder_case
 
 MATERIAL = {"name": "FCD550", "ktc": 2000.0, "krc": 700.0, "kac": 300.0, "kte": 20.0, "kre": 15.0, "kae": 5.0}
@@ -23,9 +23,7 @@ def chain(tmp_path_factory):
     stock.export(path)
     params = {"tool": TOOL, "render": {"backend": "auto", "px_per_mm": 20}, "prune": {"min_contact_deg": 0.0},
               "material": MATERIAL, "machine": MACHINE}
-    cf = cut_filter.run({"passes": passes, "stock": path}, params)["cut_filter"]
-    ap = angle_prune.run({"passes": passes, "stock": path, "cut_filter": cf}, params)["angle_prune"]
-    g = generating.run({"passes": passes, "stock": path, "cut_filter": cf, "angle_prune": ap}, params)
+    g = scan.run({"passes": passes, "stock": path}, params)
     f = forces.run({"passes": passes, "generating": g["generating"], "engagement": g["engagement"]}, params)["forces"]
     d = deflection.run({"forces": f}, params)["deflection"]
     return passes, g["generating"], d, params, q_ref, tmp_path_factory.mktemp("prof")

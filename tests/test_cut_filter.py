@@ -1,9 +1,9 @@
-"""cut_filter (claim 7) and angle_prune (claim 8) on hand-made programs with known answers."""
+"""The scan stage's cut_filter (claim 7) and angle_prune (claim 8) on hand-made programs with known answers."""
 import numpy as np
 import pyarrow as pa
 import pytest
 
-from stages import angle_prune, cut_filter
+from stages import scan
 
 from tests.cylinder_case import TOOL as CYL_TOOL, cylinder_case
 
@@ -53,7 +53,7 @@ def test_box_program_known_answers(backend):
     if backend not in _renderers():
         pytest.skip("gl back end unavailable (no EGL context)")
     params = {"tool": BALL10, "render": {"backend": backend, "px_per_mm": 10}}
-    cf = cut_filter.run({"passes": _passes(BOX_PROGRAM), "stock": STOCK}, params)["cut_filter"].to_pandas()
+    cf = scan.run({"passes": _passes(BOX_PROGRAM), "stock": STOCK}, params)["cut_filter"].to_pandas()
     assert cf.is_cutting.tolist() == [True, True, False, False, False, False, True]
     assert (cf.cut_px[~cf.is_cutting] == 0).all()
     # B cuts only beyond A's end: its prediction point is in that part
@@ -71,9 +71,8 @@ def test_cylinder_cut_filter_gl_and_cpu_agree_and_angle_prune():
     for backend in _renderers():
         params = {"tool": CYL_TOOL, "render": {"backend": backend, "px_per_mm": 20},
                   "prune": {"min_contact_deg": 45.0}}
-        cf = cut_filter.run({"passes": passes, "stock": _stl(stock)}, params)["cut_filter"]
-        ap = angle_prune.run({"passes": passes, "stock": _stl(stock), "cut_filter": cf}, params)["angle_prune"]
-        res[backend] = (cf.to_pandas(), ap.to_pandas())
+        out = scan.run({"passes": passes, "stock": _stl(stock)}, params)
+        res[backend] = (out["cut_filter"].to_pandas(), out["angle_prune"].to_pandas())
     cf, ap = res["cpu"]
     motion = passes.column("motion").to_numpy()
     contour = np.arange(len(motion)) % 2 == 1              # links and the rapid are even
@@ -138,8 +137,8 @@ def test_a_chain_turned_by_float_noise_cuts_as_the_exact_chain():
     params = {"tool": CYL_TOOL, "render": {"backend": "cpu", "px_per_mm": 20}}
 
     def cut_px(noise):
-        return cut_filter.run({"passes": _pieces(passes, noise), "stock": _stl(stock)},
-                              params)["cut_filter"].column("cut_px").to_numpy()
+        return scan.run({"passes": _pieces(passes, noise), "stock": _stl(stock)},
+                        params)["cut_filter"].column("cut_px").to_numpy()
     exact, noisy = cut_px(0.0), cut_px(1e-9)
     assert (exact > 0).sum() > 60                      # the pieces inside the stock cut
     np.testing.assert_array_equal(noisy, exact)

@@ -1,4 +1,4 @@
-"""Generating points (claims 1, 4, 6) and engagement (claim 5).
+"""Generating points (claims 1, 4, 6) and engagement (claim 5) from the scan stage.
 
 The cylinder benchmark of seed 000 Fig. 16 (tests/cylinder_case.py): the generating point of a
 contour level is analytic (the line from the ball centre to the cylinder axis meets the surface),
@@ -8,18 +8,17 @@ import numpy as np
 import pyarrow as pa
 import pytest
 
-from stages import angle_prune, cut_filter, generating
+from stages import scan
 from stages.geometry.cutter import Cutter
 from stages.geometry.envelope import envelope_mesh
-from stages.geometry.passes import PassGeometry, pass_geometry
-from stages.geometry.sweeps import ordered_sweep_scene
-from stages.geometry.workpiece import box_workpiece, load_workpiece, workpiece_scene
-from stages.scan import engagement as scan_engagement
-from stages.scan import generating as scan_generating
-from stages.scan.engagement import unpack_engagement
-from stages.scan.tiles import fine_tolerance
+from stages.geometry.passes import PassGeometry
+from stages.geometry.workpiece import box_workpiece
 from stages.render import make_renderer
+from stages.surface import engagement as surface_engagement
+from stages.surface.engagement import unpack_engagement
+from stages.surface.tiles import fine_tolerance, tiles
 from tests.cylinder_case import TOOL, cylinder_case
+from tests.surface_cases import passes_table, predict_at
 
 
 def _gl_available():
@@ -43,9 +42,7 @@ def test_cylinder_benchmark_fig16(cylinder):
     passes, path, q_ref, phi_ref = cylinder
     params = {"tool": TOOL, "render": {"backend": "auto", "px_per_mm": 20},
               "prune": {"min_contact_deg": 0.0}}
-    cf = cut_filter.run({"passes": passes, "stock": path}, params)["cut_filter"]
-    ap = angle_prune.run({"passes": passes, "stock": path, "cut_filter": cf}, params)["angle_prune"]
-    out = generating.run({"passes": passes, "stock": path, "cut_filter": cf, "angle_prune": ap}, params)
+    out = scan.run({"passes": passes, "stock": path}, params)
     g = out["generating"].to_pandas().set_index("pass_id")
     levels = np.nonzero(np.isfinite(q_ref))[0]
     assert len(levels) == 51 and q_ref[levels].min() == 0 and q_ref[levels].max() == pytest.approx(89)
@@ -63,8 +60,6 @@ def test_cylinder_benchmark_fig16(cylinder):
           f"(max {np.abs(dphi[~tip]).max():.3f}°), views {got.view.value_counts().to_dict()}")
     assert q_rms <= 0.5 and q_max <= 1.0
     assert phi_rms <= 1.0
-    # claim 6: steep surfaces were re-rendered along the normal
-    assert (got.view[q_ref[levels] > 62] == "normal").all()
     # normal = out of the material: on the cylinder, radial
     n = got[["nx", "ny", "nz"]].to_numpy()
     qr = np.radians(q_ref[levels])
@@ -82,36 +77,45 @@ def test_gl_and_cpu_agree_on_generating_points(cylinder):
     if not _gl_available():
         pytest.skip("gl back end unavailable (no EGL context)")
     passes, path, q_ref, _ = cylinder
-    shape = Cutter.from_params(TOOL)
-    pg = pass_geometry(passes, TOOL)
-    wp = load_workpiece(path)
     levels = np.nonzero(np.isfinite(q_ref))[0][[0, 17, 35, 48]]      # 0°, 30°, 62°, 85.4°
-    tips = 0.5 * (pg.p0[levels] + pg.p1[levels])
-    res = {b: scan_generating.generating(pg, shape, wp, make_renderer(b), 20.0, levels, tips, 2)[0]
-           for b in ("cpu", "gl")}
-    assert list(res["cpu"]["view"]) == list(res["gl"]["view"])
-    dq = np.abs(res["cpu"]["contact_deg"] - res["gl"]["contact_deg"])
+    at = {int(k): _middle(passes, k) for k in levels}
+    res = {b: predict_at(passes, path, TOOL, at, backend=b)["generating"].to_pandas() for b in ("cpu", "gl")}
+    assert list(res["cpu"]["view"]) == list(res["gl"]["view"]) and (res["cpu"]["view"] == "strip").all()
+    dq = np.abs(res["cpu"]["contact_deg"] - res["gl"]["contact_deg"]).to_numpy()
     print(f"\ngl vs cpu |dq| per pass: {np.round(dq, 4)}")
     assert dq.max() <= 0.2
 
 
-def test_view_correction_needed_on_steep_walls(cylinder):
-    """Without claim 6 the steepest levels are lost or worse; with it they are found."""
-    passes, path, q_ref, _ = cylinder
-    shape = Cutter.from_params(TOOL)
-    pg = pass_geometry(passes, TOOL)
-    wp = load_workpiece(path)
-    levels = np.nonzero(np.isfinite(q_ref))[0][-3:]                   # 85.4°, 87.2°, 89°
-    tips = 0.5 * (pg.p0[levels] + pg.p1[levels])
-    r = make_renderer("auto")
-    with_vc = scan_generating.generating(pg, shape, wp, r, 20.0, levels, tips, 2)[0]
-    without = scan_generating.generating(pg, shape, wp, r, 20.0, levels, tips, 2, steep_deg=None)[0]
-    err_with = np.abs(with_vc["contact_deg"] - q_ref[levels])
-    err_without = np.abs(np.nan_to_num(without["contact_deg"], nan=0.0) - q_ref[levels])
-    print(f"\nsteep levels {q_ref[levels]}: n_px from below {without['n_px']}, "
-          f"|dq| without {np.round(err_without, 2)} with {np.round(err_with, 2)}")
-    assert np.all(with_vc["view"] == "normal") and err_with.max() < 1.0
-    assert err_without.max() > err_with.max()
+def _middle(passes, k):
+    t = passes.slice(int(k), 1).to_pylist()[0]
+    return 0.5 * np.array([t["x0_mm"] + t["x1_mm"], t["y0_mm"] + t["y1_mm"], t["z0_mm"] + t["z1_mm"]])
+
+
+@pytest.mark.parametrize("step_mm", [0.3, 0.5])
+def test_z_levels_down_a_vertical_wall_leave_it_between_their_equators(step_mm):
+    """Claim 6. A ball finishes the vertical wall x = 0.05 (the box's face at 0, 0.05 mm of
+    stock) in z-levels ``step_mm`` apart, top down. Above its equator the tool's side is the
+    shank, which sweeps the wall itself: each level recuts the scallop the level above left below
+    that level's equator, and the wall between its own equator and the one above is first cut,
+    and so left, by the level itself (a tie with the later levels' shanks goes to the earlier
+    pass). Closed form for a middle level: C between its equator and the next equator up, q 90°,
+    normal −x. From below the wall is edge-on and the later levels' cuts below it hide the
+    strip: read from below alone the point falls below the equator."""
+    R, a_e = 5.0, 0.05
+    tool = {"type": "ball", "diameter_mm": 2 * R, "flutes": 2, "stickout_mm": 30.0}
+    xc = a_e - R
+    zs = -8.0 - step_mm * np.arange(5)
+    p0 = [(xc, -20.0 if i % 2 == 0 else 20.0, z) for i, z in enumerate(zs)]
+    p1 = [(xc, 20.0 if i % 2 == 0 else -20.0, z) for i, z in enumerate(zs)]
+    passes = passes_table("wall", p0, p1, feed=200.0)
+    stock, equator = {"box": [0, -30, -30, 30, 30, 0]}, zs[2] + R
+    g = predict_at(passes, stock, tool, {2: (xc, 0.0, zs[2])})["generating"].to_pylist()[0]
+    below = predict_at(passes, stock, tool, {2: (xc, 0.0, zs[2])}, steep_deg=90.0)["generating"].to_pylist()[0]
+    print(f"\nstep {step_mm}: C z − equator {g['gen_z_mm'] - equator:.3f} (closed form 0 to {step_mm}), "
+          f"q {g['contact_deg']:.2f}; from below alone {below['gen_z_mm'] - equator:.3f}, q {below['contact_deg']:.2f}")
+    assert 0.0 <= g["gen_z_mm"] - equator <= step_mm
+    assert abs(g["contact_deg"] - 90.0) < 0.5 and g["nx"] < -0.9999 and abs(g["gen_x_mm"] - a_e) < 0.01
+    assert below["gen_z_mm"] - equator < 0.0
 
 
 def test_engagement_of_a_slot_matches_closed_form():
@@ -135,16 +139,12 @@ def test_engagement_of_a_slot_matches_closed_form():
         "feed_mm_min": [f * 2 * 1000.0], "spindle_rpm": [1000.0], "tool": pa.array([1] * n, pa.int32()),
         "t_start_s": [0.0], "t_end_s": [1.0]})
     stock = {"box": [-30, -30, -10, 30, 30, 0]}
-    params = {"tool": tool, "render": {"backend": "auto", "px_per_mm": 20}}
-    cf = pa.table({"pass_id": pa.array([0], pa.int32()), "is_cutting": [True],
-                   "pred_x_mm": [0.0], "pred_y_mm": [0.0], "pred_z_mm": [-a]})
-    ap = pa.table({"pass_id": pa.array([0], pa.int32()), "predict": [True]})
-    out = generating.run({"passes": passes, "stock": stock, "cut_filter": cf, "angle_prune": ap}, params)
+    out = predict_at(passes, stock, tool, {0: (0.0, 0.0, -a)})
     row = out["engagement"].to_pylist()[0]
-    assert row["dz_mm"] == pytest.approx(R * scan_engagement.DZ_PER_RADIUS) and row["n_phi"] == scan_engagement.N_PHI
+    assert row["dz_mm"] == pytest.approx(R * surface_engagement.DZ_PER_RADIUS) and row["n_phi"] == surface_engagement.N_PHI
     assert (row["feed_dir_x"], row["feed_dir_y"]) == pytest.approx((1.0, 0.0))
     E, z, phi = unpack_engagement(row)
-    assert E.shape == (row["n_z"], scan_engagement.N_PHI)
+    assert E.shape == (row["n_z"], surface_engagement.N_PHI)
     assert z[-1] < a + row["dz_mm"]                        # levels stop at the engaged height
     # all round below the top face, less the in-material margin tol (one level at most)
     tol = fine_tolerance(20)
@@ -177,13 +177,9 @@ def test_engagement_on_a_vertical_wall_matches_closed_form():
         "feed_mm_min": [f * 2 * 1000.0], "spindle_rpm": [1000.0], "tool": pa.array([1], pa.int32()),
         "t_start_s": [0.0], "t_end_s": [1.0]})
     stock = {"box": [0, -30, -30, 30, 30, 0]}
-    params = {"tool": tool, "render": {"backend": "auto", "px_per_mm": 20}}
-    cf = pa.table({"pass_id": pa.array([0], pa.int32()), "is_cutting": [True],
-                   "pred_x_mm": [xc], "pred_y_mm": [0.0], "pred_z_mm": [-H]})
-    ap = pa.table({"pass_id": pa.array([0], pa.int32()), "predict": [True]})
-    out = generating.run({"passes": passes, "stock": stock, "cut_filter": cf, "angle_prune": ap}, params)
+    out = predict_at(passes, stock, tool, {0: (xc, 0.0, -H)})
     g = out["generating"].to_pylist()[0]
-    assert g["view"] == "normal" and abs(g["contact_deg"] - 90.0) < 3.0
+    assert g["view"] == "strip" and abs(g["contact_deg"] - 90.0) < 3.0
     E, z, phi = unpack_engagement(out["engagement"].to_pylist()[0])
     th = np.radians(phi + 90.0)                                  # feed +y: θ = φ + 90°
     x = R * np.cos(th)
@@ -229,13 +225,9 @@ def test_engagement_across_a_slot_keeps_the_far_wall(tmp_path):
         "x0_mm": xs, "y0_mm": [-20.0, 20.0], "z0_mm": [-H, -H], "x1_mm": xs, "y1_mm": [20.0, -20.0],
         "z1_mm": [-H, -H], "feed_mm_min": [f * 2 * 1000.0] * 2, "spindle_rpm": [1000.0] * 2,
         "tool": pa.array([1, 1], pa.int32()), "t_start_s": [0.0, 1.0], "t_end_s": [1.0, 2.0]})
-    params = {"tool": tool, "render": {"backend": "auto", "px_per_mm": 20}}
-    cf = pa.table({"pass_id": pa.array([0], pa.int32()), "is_cutting": [True],
-                   "pred_x_mm": [xc], "pred_y_mm": [0.0], "pred_z_mm": [-H]})
-    ap = pa.table({"pass_id": pa.array([0], pa.int32()), "predict": [True]})
-    out = generating.run({"passes": passes, "stock": str(stock), "cut_filter": cf, "angle_prune": ap}, params)
+    out = predict_at(passes, str(stock), tool, {0: (xc, 0.0, -H)})
     g = out["generating"].to_pylist()[0]
-    assert g["view"] == "normal" and abs(g["contact_deg"] - 90.0) < 3.0 and g["nx"] < -0.99
+    assert g["view"] == "strip" and abs(g["contact_deg"] - 90.0) < 3.0 and g["nx"] < -0.99
     E, z, phi = unpack_engagement(out["engagement"].to_pylist()[0])
     x = R * np.cos(np.radians(phi + 90.0))                       # feed +y: θ = φ + 90°
     side = (z > R + 0.1) & (z < H - 0.1)
@@ -293,14 +285,10 @@ def test_generating_point_of_the_last_row_is_its_contact_with_the_design_surface
         "feed_mm_min": [2000.0] * k, "spindle_rpm": [10000.0] * k, "tool": pa.array([1] * k, pa.int32()),
         "t_start_s": np.arange(k, dtype=float), "t_end_s": np.arange(1, k + 1, dtype=float)})
     tool = {"type": "ball", "diameter_mm": 2 * R, "flutes": 2, "stickout_mm": 30.0}
-    params = {"tool": tool, "render": {"backend": "auto", "px_per_mm": 20}}
-    mid = 0.5 * (a[-1] + b[-1])
-    cf = pa.table({"pass_id": pa.array([k - 1], pa.int32()), "is_cutting": [True],
-                   "pred_x_mm": [mid[0]], "pred_y_mm": [mid[1]], "pred_z_mm": [mid[2]]})
-    ap = pa.table({"pass_id": pa.array([k - 1], pa.int32()), "predict": [True]})
-    inputs = {"passes": passes, "stock": str(tmp_path / "stock.stl"), "cut_filter": cf, "angle_prune": ap}
-    band = generating.run(inputs, params)["generating"].to_pylist()[0]
-    contact = generating.run({**inputs, "nominal": str(tmp_path / "design.stl")}, params)["generating"].to_pylist()[0]
+    at = {k - 1: 0.5 * (a[-1] + b[-1])}
+    stock = str(tmp_path / "stock.stl")
+    band = predict_at(passes, stock, tool, at)["generating"].to_pylist()[0]
+    contact = predict_at(passes, stock, tool, at, nominal=str(tmp_path / "design.stl"))["generating"].to_pylist()[0]
     wrap = lambda phi: (phi + 180.0) % 360.0 - 180.0  # noqa: E731
     print(f"\nlast row: band mean φ {wrap(band['rotation_deg']):.2f}°, q {band['contact_deg']:.2f}°; "
           f"contact φ {wrap(contact['rotation_deg']):.2f}°, q {contact['contact_deg']:.2f}°")
@@ -336,15 +324,15 @@ def test_snapshot_leaves_out_the_straight_trailing_path_only():
                           np.full(8, 1000.0), np.full(8, 1000.0))
     idx = np.array([1, 2, 3, 4, 5, 6, 7])
     s_tip = pg.s0[idx] + 0.5 * pg.length[idx]            # mid-chord
-    got = scan_engagement.snapshot_from(pg, idx, s_tip, 5.0)
+    got = surface_engagement.snapshot_from(pg, idx, s_tip, 5.0)
     # pass 1 (10 mm from the rapid): the rapid is no cut → nothing left out
     # pass 2: pass 1 ends 0.1 mm behind → left out; pass 3: 1 and 2; pass 4: 1, 2, 3 (pass 1 ends
     # 0.405 mm behind); pass 5 (the 90° turn): nothing; pass 6 (8° more): pass 5; pass 7: after a gap
     assert got.tolist() == [1, 1, 1, 1, 5, 5, 7]
     # reach: pass 1 ends 5.2 mm behind a point 5.2 mm into … a long chord, left in
-    far = scan_engagement.snapshot_from(pg, np.array([3]), np.array([pg.s0[3] + 0.1]), 0.2)
+    far = surface_engagement.snapshot_from(pg, np.array([3]), np.array([pg.s0[3] + 0.1]), 0.2)
     assert far.tolist() == [3 - 1]                         # pass 2 ends 0.1 mm behind; pass 1 0.3 mm
-    assert scan_engagement.snapshot_from(pg, np.array([4]), np.array([pg.s0[4]]), 5.0, turn_deg=0.0).tolist() == [1]
+    assert surface_engagement.snapshot_from(pg, np.array([4]), np.array([pg.s0[4]]), 5.0, turn_deg=0.0).tolist() == [1]
 
 
 @pytest.mark.parametrize("chord_mm", [0.01, 0.2])
@@ -373,11 +361,7 @@ def test_engagement_of_a_short_chord_is_that_of_the_cut(chord_mm):
         "z1_mm": [-a] * n, "feed_mm_min": [f * 2 * 1000.0] * n, "spindle_rpm": [1000.0] * n,
         "tool": pa.array([1] * n, pa.int32()), "t_start_s": [0.0, 1.0, 2.0], "t_end_s": [1.0, 2.0, 3.0]})
     stock = {"box": [-30, -30, -10, 30, 30, 0]}
-    params = {"tool": tool, "render": {"backend": "auto", "px_per_mm": 20}}
-    cf = pa.table({"pass_id": pa.array([1, 2], pa.int32()), "is_cutting": [True, True],
-                   "pred_x_mm": [chord_mm / 2, 10.0], "pred_y_mm": [0.0, 0.0], "pred_z_mm": [-a, -a]})
-    ap = pa.table({"pass_id": pa.array([1, 2], pa.int32()), "predict": [True, True]})
-    out = generating.run({"passes": passes, "stock": stock, "cut_filter": cf, "angle_prune": ap}, params)
+    out = predict_at(passes, stock, tool, {1: (chord_mm / 2, 0.0, -a), 2: (10.0, 0.0, -a)})
     rows = {r["pass_id"]: r for r in out["engagement"].to_pylist()}
     tol = fine_tolerance(20)
     grids = {}
@@ -414,11 +398,7 @@ def test_a_corner_behind_stays_in_the_snapshot():
         "y1_mm": [0.0, 0.0], "z1_mm": [-a] * n, "feed_mm_min": [f * 2 * 1000.0] * n, "spindle_rpm": [1000.0] * n,
         "tool": pa.array([1] * n, pa.int32()), "t_start_s": [0.0, 1.0], "t_end_s": [1.0, 2.0]})
     stock = {"box": [-30, -30, -10, 30, 30, 0]}
-    params = {"tool": tool, "render": {"backend": "auto", "px_per_mm": 20}}
-    cf = pa.table({"pass_id": pa.array([1], pa.int32()), "is_cutting": [True],
-                   "pred_x_mm": [0.005], "pred_y_mm": [0.0], "pred_z_mm": [-a]})
-    ap = pa.table({"pass_id": pa.array([1], pa.int32()), "predict": [True]})
-    out = generating.run({"passes": passes, "stock": stock, "cut_filter": cf, "angle_prune": ap}, params)
+    out = predict_at(passes, stock, tool, {1: (0.005, 0.0, -a)})
     E, z, phi = unpack_engagement(out["engagement"].to_pylist()[0])
     th = np.radians(phi)                                   # feed +x: angle from +x
     # the corner pass's sweep covers every point with y < 0 within R of its line x = 0, and its end
@@ -438,7 +418,8 @@ def test_a_turning_chain_drawn_in_one_draw_equals_its_passes_drawn_one_by_one():
     envelope copy is there, so that is the reference. Failed by 0.82 mm while the joints' copies
     were left out whole: through the lune between the two silhouettes, which no band draws, a ray
     saw the stock top (on the sample, the earlier passes' surface, up to 0.15 mm too high)."""
-    from stages.scan.tiles import scan_tiles, z_range
+    from stages.geometry.sweeps import ordered_sweep_scene
+    from stages.geometry.workpiece import workpiece_scene
     tool = {"type": "ball", "diameter_mm": 10, "flutes": 2, "stickout_mm": 30.0}
     shape = Cutter.from_params(tool)
     pts = [np.zeros(3)]
@@ -447,15 +428,14 @@ def test_a_turning_chain_drawn_in_one_draw_equals_its_passes_drawn_one_by_one():
     pg = _chain(pts)
     wp = box_workpiece([-15, -10, -10, 10, 10, 3])
     mesh = envelope_mesh(shape, fine_tolerance(20))
-    zlo, zhi = z_range(pg, wp, shape)
-    views, _ = scan_tiles(pg, shape, wp, 20.0, np.arange(len(pg.pass_id)), zlo, zhi)
+    (tile,) = tiles(pg, shape, wp, 20.0)
     r = make_renderer("cpu")
 
     def final(group):
         n = len(pg.pass_id)
         batches = (ordered_sweep_scene(mesh, pg.p0[a:a + group], pg.p1[a:a + group], np.arange(a, min(n, a + group)))
                    for a in range(0, n, group))
-        return r.scan(views[0], workpiece_scene(wp, views, -2.0), batches, n, 1).final.depth
+        return r.scan(tile.view, workpiece_scene(wp, [tile.view], -2.0), batches, n, 1).final.depth
     one, each = final(len(pg.pass_id)), final(1)
     both = np.isfinite(one) & np.isfinite(each)
     assert both.sum() > 1000
@@ -494,17 +474,13 @@ def test_a_pass_climbing_a_wall_beside_corner_rest_material_is_found_on_the_wall
         "tool": pa.array([1] * k, pa.int32()), "t_start_s": np.arange(k, dtype=float),
         "t_end_s": np.arange(1, k + 1, dtype=float)})
     tool = {"type": "ball", "diameter_mm": 2 * R, "flutes": 2, "stickout_mm": 40.0}
-    params = {"tool": tool, "render": {"backend": "auto", "px_per_mm": 20}}
-    cf = pa.table({"pass_id": pa.array([1], pa.int32()), "is_cutting": [True],
-                   "pred_x_mm": [xc], "pred_y_mm": [0.0], "pred_z_mm": [-12.5]})
-    ap = pa.table({"pass_id": pa.array([1], pa.int32()), "predict": [True]})
-    inputs = {"passes": passes, "stock": str(tmp_path / "stock.stl"), "cut_filter": cf, "angle_prune": ap}
-    blind = generating.run(inputs, params)["generating"].to_pylist()[0]
-    g = generating.run({**inputs, "nominal": str(tmp_path / "design.stl")}, params)["generating"].to_pylist()[0]
+    at, stock = {1: (xc, 0.0, -12.5)}, str(tmp_path / "stock.stl")
+    blind = predict_at(passes, stock, tool, at)["generating"].to_pylist()[0]
+    g = predict_at(passes, stock, tool, at, nominal=str(tmp_path / "design.stl"))["generating"].to_pylist()[0]
     print(f"\nwithout the design model: view {blind['view']}, φ {blind['rotation_deg']}; with it: view "
           f"{g['view']}, {g['n_px']} px, q {g['contact_deg']:.2f}°, φ {g['rotation_deg']:.2f}°, "
           f"C ({g['gen_x_mm']:.3f}, {g['gen_y_mm']:.3f}, {g['gen_z_mm']:.3f})")
-    assert g["view"] == "normal" and g["n_px"] > 20
+    assert g["view"] == "strip" and g["n_px"] >= 5           # strip samples, 0.5° apart
     assert abs((g["rotation_deg"] + 180.0) % 360.0 - 180.0) < 3.0 and abs(g["contact_deg"] - 90.0) < 3.0
     assert g["nx"] < -0.99
     assert abs(g["gen_x_mm"]) < 0.05 and abs(g["gen_y_mm"]) < 0.3
@@ -534,10 +510,7 @@ def test_pieces_of_a_line_are_predicted_where_they_leave_the_surface(tmp_path):
     inside = (level & (np.maximum(p.y0_mm.abs(), p.y1_mm.abs()) <= 1.5 + 1e-9)).to_numpy()
 
     def gen_y():
-        inputs = {"passes": pieces, "stock": str(tmp_path / "stock.stl")}
-        cf = cut_filter.run(inputs, params)["cut_filter"]
-        ap = angle_prune.run({**inputs, "cut_filter": cf}, params)["angle_prune"]
-        g = generating.run({**inputs, "cut_filter": cf, "angle_prune": ap}, params)["generating"]
+        g = scan.run({"passes": pieces, "stock": str(tmp_path / "stock.stl")}, params)["generating"]
         y = np.full(len(p), np.nan)
         y[g.column("pass_id").to_numpy()] = g.column("gen_y_mm").to_numpy()
         return y[inside]
@@ -547,7 +520,8 @@ def test_pieces_of_a_line_are_predicted_where_they_leave_the_surface(tmp_path):
 
 
 def _climb(tmp_path, design, stock, xc, yc, zs, name):
-    """Passes of one straight climb at (xc, yc) through heights ``zs`` and the middle one predicted."""
+    """Passes of one straight climb at (xc, yc) through heights ``zs``, the middle one's prediction
+    point, and the stock's and the design model's files."""
     design.export(tmp_path / "design.stl")
     stock.export(tmp_path / "stock.stl")
     k = len(zs) - 1
@@ -560,11 +534,7 @@ def _climb(tmp_path, design, stock, xc, yc, zs, name):
         "tool": pa.array([1] * k, pa.int32()), "t_start_s": np.arange(k, dtype=float),
         "t_end_s": np.arange(1, k + 1, dtype=float)})
     mid = k // 2
-    cf = pa.table({"pass_id": pa.array([mid], pa.int32()), "is_cutting": [True], "pred_x_mm": [xc],
-                   "pred_y_mm": [yc], "pred_z_mm": [0.5 * (zs[mid] + zs[mid + 1])]})
-    ap = pa.table({"pass_id": pa.array([mid], pa.int32()), "predict": [True]})
-    return {"passes": passes, "stock": str(tmp_path / "stock.stl"), "cut_filter": cf, "angle_prune": ap,
-            "nominal": str(tmp_path / "design.stl")}
+    return passes, {mid: (xc, yc, 0.5 * (zs[mid] + zs[mid + 1]))}, str(tmp_path / "stock.stl"), str(tmp_path / "design.stl")
 
 
 def test_a_ball_climbing_a_vertical_corner_has_a_contact_on_each_wall(tmp_path):
@@ -581,9 +551,8 @@ def test_a_ball_climbing_a_vertical_corner_has_a_contact_on_each_wall(tmp_path):
     stock = trimesh.util.concatenate([trimesh.creation.box(bounds=[[-a_e, -20, -30], [20, 20, 0]]),
                                       trimesh.creation.box(bounds=[[-30, R - a_e, -30], [20, 20, 0]])])
     tool = {"type": "ball", "diameter_mm": 2 * R, "flutes": 2, "stickout_mm": 40.0}
-    params = {"tool": tool, "render": {"backend": "auto", "px_per_mm": 20}}
-    inputs = _climb(tmp_path, design, stock, -R, 0.0, np.array([-20.0, -15.0, -10.0, -5.0]), "corner")
-    g = generating.run(inputs, params)["generating"].to_pylist()[0]
+    passes, at, stock, design = _climb(tmp_path, design, stock, -R, 0.0, np.array([-20.0, -15.0, -10.0, -5.0]), "corner")
+    g = predict_at(passes, stock, tool, at, nominal=design)["generating"].to_pylist()[0]
     print(f"\nfirst: {g['view']} {g['n_px']} px, n ({g['nx']:.3f}, {g['ny']:.3f}, {g['nz']:.3f}), C ({g['gen_x_mm']:.3f}, "
           f"{g['gen_y_mm']:.3f}, {g['gen_z_mm']:.3f}); second: {g['n2_px']} px, n ({g['nx2']:.3f}, {g['ny2']:.3f}, "
           f"{g['nz2']:.3f}), C ({g['gen2_x_mm']:.3f}, {g['gen2_y_mm']:.3f}, {g['gen2_z_mm']:.3f}), q {g['contact2_deg']:.2f}")
@@ -599,7 +568,7 @@ def test_a_ball_climbing_a_vertical_corner_has_a_contact_on_each_wall(tmp_path):
         assert -12.5 + R - 0.5 < g["gen" + sfx + "_z_mm"] < -12.5 + R + 2.5
         found.append(wall)
     assert sorted(found) == ["x", "y"]
-    assert g["n2_px"] > 20 and abs(g["contact2_deg"] - 90.0) < 3.0
+    assert g["n2_px"] >= 5 and abs(g["contact2_deg"] - 90.0) < 3.0   # strip samples
 
 
 def test_a_ball_in_a_fillet_of_its_own_radius_has_one_contact(tmp_path):
@@ -627,16 +596,11 @@ def test_a_ball_in_a_fillet_of_its_own_radius_has_one_contact(tmp_path):
         return m
     design, stock = part(0.0), part(a_e)
     tool = {"type": "ball", "diameter_mm": 2 * R, "flutes": 2, "stickout_mm": 40.0}
-    params = {"tool": tool, "render": {"backend": "auto", "px_per_mm": 20}}
-    inputs = _climb(tmp_path, design, stock, -R, 0.0, np.array([0.0, 0.0, 0.0, 0.0]), "fillet")
-    passes = inputs["passes"]
+    passes, _, stock, design = _climb(tmp_path, design, stock, -R, 0.0, np.array([0.0, 0.0, 0.0, 0.0]), "fillet")
     ys = np.array([-9.0, -3.0, 3.0, 9.0])
     passes = passes.set_column(passes.schema.get_field_index("y0_mm"), "y0_mm", pa.array(ys[:-1]))
     passes = passes.set_column(passes.schema.get_field_index("y1_mm"), "y1_mm", pa.array(ys[1:]))
-    inputs["passes"] = passes
-    inputs["cut_filter"] = pa.table({"pass_id": pa.array([1], pa.int32()), "is_cutting": [True], "pred_x_mm": [-R],
-                                     "pred_y_mm": [0.0], "pred_z_mm": [0.0]})
-    g = generating.run(inputs, params)["generating"].to_pylist()[0]
+    g = predict_at(passes, stock, tool, {1: (-R, 0.0, 0.0)}, nominal=design)["generating"].to_pylist()[0]
     print(f"\n{g['view']} {g['n_px']} px, q {g['contact_deg']:.1f}, second {g['n2_px']} px")
     assert g["view"] != "none"
     assert g["n2_px"] == 0 and np.isnan(g["contact2_deg"])

@@ -6,7 +6,7 @@ from scipy.spatial import cKDTree
 from stages import InputError
 from stages.geometry.cutter import Cutter
 from stages.geometry.envelope import envelope_mesh
-from stages.geometry.sweeps import chain_joints, ordered_sweep_scene, segment_scene, sweep_bands, sweep_lowest_z, sweep_triangles
+from stages.geometry.sweeps import chain_joints, ordered_sweep_scene, sweep_bands, sweep_lowest_z, sweep_triangles
 from stages.geometry.workpiece import DesignSurface, load_design_surface, load_workpiece
 from stages.render import View, make_scene
 from stages.render.cpu import CPURenderer
@@ -92,8 +92,7 @@ def _turning_chain(n=14, chord=0.7, turn_deg=4.0, climb=0.05):
 
 
 @pytest.mark.parametrize("turn_deg", [4.0, 40.0])
-@pytest.mark.parametrize("builder", ["segment_scene", "ordered_sweep_scene"])
-def test_turning_chain_from_below_matches_brute_force(builder, turn_deg):
+def test_turning_chain_from_below_matches_brute_force(turn_deg):
     """A chain whose joint copies are left out (all but the lune) renders the lower envelope of the
     whole motion: no hole at any joint (a ray through a missing lune sees through the sweep) and
     never above the true surface, on a smooth chain (CAM chords at 4°) and at sharp corners.
@@ -105,10 +104,7 @@ def test_turning_chain_from_below_matches_brute_force(builder, turn_deg):
     k = len(p0)
     drop0, drop1 = chain_joints(p0, p1, np.zeros(k))
     assert drop1[:-1].all() and drop0[1:].all()                     # every joint is drawn as its lune
-    if builder == "segment_scene":
-        sc = segment_scene(mesh, p0, p1, np.zeros(k, np.int64), np.arange(k) + 1.0, (0, 0, 1.0))
-    else:
-        sc = ordered_sweep_scene(mesh, p0, p1, np.arange(k) + 1.0)
+    sc = ordered_sweep_scene(mesh, p0, p1, np.arange(k) + 1.0)
     view = View((4.5, 2.0, 0.0), (0, 0, 1.0), (0, 1.0, 0), 22, 18, 10, -10, 30)
     im = CPURenderer().render([view], sc)[0]
     allpix = view.pixel_points(*np.indices(im.id.shape).reshape(2, -1), 0)[:, :2]
@@ -124,13 +120,13 @@ def test_turning_chain_from_below_matches_brute_force(builder, turn_deg):
     assert gentle.sum() > 10000
     assert err.max() <= 2 * tol + 2e-3 and err.min() >= -2e-3
     # and the point of leaving the copies out: far fewer triangles than a full copy per joint
-    full = segment_scene(mesh, p0, p1, np.arange(k), np.arange(k) + 1.0, (0, 0, 1.0))
-    assert len(sc.tris) < 0.6 * len(full.tris)
+    full, _, _ = sweep_triangles(mesh, p0, p1, view_dir=(0, 0, 1.0))
+    assert len(sc.tris) < 0.6 * len(full)
 
 
 def test_bands_vertical_plunge_and_zero_length():
     mesh = envelope_mesh(Cutter.from_params(TOOLS["ball"]), 0.05)
-    t, q, o = sweep_bands(mesh, [[0, 0, 5.0], [1, 1, 1.0]], [[0, 0, 0.0], [1, 1, 1.0]])
+    t, q, o, _ = sweep_bands(mesh, [[0, 0, 5.0], [1, 1, 1.0]], [[0, 0, 0.0], [1, 1, 1.0]])
     assert len(t) > 0 and set(np.unique(o)) == {0}            # zero-length pass: no band
     # plunge: bands lie on the cylinder r = R (silhouette = equator)
     r = np.hypot(t[..., 0], t[..., 1])

@@ -144,7 +144,7 @@ def test_iterated_correction_through_the_engine(tmp_path):
     assert all(s["computed"] == 0 for s in summary["stages"] if "@" not in s["name"])
     round_stages = [s for s in summary["stages"] if "@" in s["name"]]
     assert {s["name"] for s in round_stages} == {f"{m}@{r}" for r in (2, 3) for m in (
-        "correct_blocks", "split", "cut_filter", "angle_prune", "generating", "forces", "deflection", "errors", "correct")}
+        "correct_blocks", "split", "scan", "forces", "deflection", "errors", "correct")}
     assert all(s["computed"] == 1 for s in round_stages)
     # the table keeps the ORIGINAL coordinates and the new ones after all rounds
     blocks, _ = parse_program(src, "cyl.nc", "cyl")

@@ -16,6 +16,12 @@ TOOLS = {"ball": (5.0, 5.0), "bull": (5.0, 1.5), "flat": (5.0, 0.0)}
 STICK = 20.0
 
 
+
+def _cutter(R, rc):
+    from stages.geometry.cutter import Cutter
+    kind = "ball" if rc == R else ("flat" if rc == 0 else "bull")
+    return Cutter(kind, R, rc, STICK)
+
 def _tool_surface(R, rc, n=1000, az=(0.0, 360.0), n_az=360):
     """Dense points on the tool surface (its profile revolved over the azimuths ``az``, degrees)."""
     a = R - rc
@@ -41,7 +47,7 @@ def test_tool_distance_against_dense_surface_points(kind):
     # points outside the tool: below, beside, around the corner
     pts = np.concatenate([rng.uniform([-7, -7, -2], [7, 7, 0], (30, 3)),
                           rng.uniform([-8, -8, 0], [8, 8, 12], (30, 3))])
-    d, q, h, nrm = pe.tool_distance(pts, R, rc, STICK)
+    d, q, h, nrm = _cutter(R, rc).distance(pts)
     outside = d > 0.05
     def nearest(p):           # over the surface within ±10° of the point's azimuth, 0.05° apart
         a = np.degrees(np.arctan2(p[1], p[0]))
@@ -66,9 +72,9 @@ def test_sweep_distance_against_sampled_positions(kind):
     tip0 = rng.uniform(-1, 1, (k, 3))
     tip1 = tip0 + rng.normal(0, 1.0, (k, 3))
     pts = tip0 + rng.uniform([-7, -7, -3], [7, 7, 6], (k, 3))
-    d, t, *_ = pe.sweep_distance(pts, tip0, tip1, R, rc, STICK)
+    d, t, *_ = pe.sweep_distance(pts, tip0, tip1, _cutter(R, rc))
     ts = np.linspace(0, 1, 4001)
-    brute = np.min(np.stack([pe.tool_distance(pts - tip0 - s * (tip1 - tip0), R, rc, STICK)[0] for s in ts]), axis=0)
+    brute = np.min(np.stack([_cutter(R, rc).distance(pts - tip0 - s * (tip1 - tip0))[0] for s in ts]), axis=0)
     # outside the swept tool the distance is convex along the move and the search exact; inside it
     # is an approximate depth (only its sign is used)
     out = brute > 0

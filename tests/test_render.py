@@ -9,7 +9,7 @@ import pytest
 from stages import InputError, render
 from stages.geometry.cutter import Cutter
 from stages.geometry.envelope import envelope_mesh
-from stages.geometry.sweeps import segment_scene
+from stages.geometry.sweeps import sweep_triangles
 from stages.render import Scene, View, make_scene
 from stages.render.cpu import CPURenderer
 
@@ -81,8 +81,8 @@ def test_gl_and_cpu_agree_on_tool_sweeps():
     p1 = p0 + rng.uniform(-4, 4, (12, 3)) * [1, 1, 0.2]
     views = [View((0, 0, 0), (0, 0, 1.0), (0, 1.0, 0), 20, 20, 20, -10, 30),
              View((1, 0, 0), (0.6, 0, 0.8), (0, 1.0, 0), 20, 20, 20, -10, 30)]
-    sc = Scene.concat([segment_scene(mesh, p0, p1, np.full(12, w), np.arange(12) + 1, None)
-                       for w in range(2)])
+    tris, q, owner = sweep_triangles(mesh, p0, p1)
+    sc = Scene.concat([make_scene(tris, w, owner + 1, b=q) for w in range(2)])
     for a, b in zip(CPURenderer().render(views, sc), gl.render(views, sc)):
         both = (a.id >= 0) & (b.id >= 0)
         assert np.mean(a.id == b.id) > 0.995

@@ -28,57 +28,13 @@ import math
 
 import numpy as np
 
+from stages.geometry.cutter import Cutter
+
 GOLDEN_ITERS = 48          # (√5 − 1)/2 ^ 48 ≈ 1e-10 of the move length
 _INV_PHI = (math.sqrt(5.0) - 1.0) / 2.0
 
 
-def tool_distance(rel: np.ndarray, radius_mm: float, corner_mm: float, stickout_mm: float):
-    """Signed distance from points to an axisymmetric end mill with its tip at the origin, axis +z.
-
-    Parameters
-    ----------
-    rel : ndarray (..., 3)
-        Points relative to the tool tip, mm.
-    radius_mm, corner_mm, stickout_mm : float
-        Tool radius R, corner radius rc (R: ball, 0: flat), length of the cutting part above the tip.
-
-    Returns
-    -------
-    dist : ndarray (...)
-        Distance to the tool surface, mm; negative inside (approximate depth there).
-    contact_deg : ndarray (...)
-        Contact angle q of the nearest tool point (0 at the tip, 90 on the side).
-    height_mm : ndarray (...)
-        Height of the nearest tool point above the tip.
-    normal : ndarray (..., 3)
-        Outward unit normal of the tool at the nearest point.
-    """
-    R, rc = float(radius_mm), float(corner_mm)
-    a = R - rc                                           # radius of the circle of corner centres
-    x, y, h = rel[..., 0], rel[..., 1], rel[..., 2]
-    r = np.hypot(x, y)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ux = np.where(r > 1e-12, x / np.where(r > 1e-12, r, 1.0), 1.0)
-        uy = np.where(r > 1e-12, y / np.where(r > 1e-12, r, 1.0), 0.0)
-    dr, dh = r - a, h - rc
-    on_bottom = r <= a                                   # under (or inside) the flat bottom
-    on_side = ~on_bottom & (dh > 0)                      # beside the cylindrical side
-    rho = np.hypot(np.maximum(dr, 0.0), np.minimum(dh, 0.0))
-    d_corner = rho - rc
-    q_corner = np.degrees(np.arctan2(np.maximum(dr, 0.0), -np.minimum(dh, 0.0)))
-    dist = np.where(on_bottom, -h, np.where(on_side, r - R, d_corner))
-    # above the stick-out nothing of the tool cuts
-    dist = np.where(h > stickout_mm, np.maximum(dist, h - stickout_mm), dist)
-    q = np.where(on_bottom, 0.0, np.where(on_side, 90.0, q_corner))
-    height = np.where(on_bottom, 0.0, np.where(on_side, np.clip(h, rc, stickout_mm),
-                                               rc * (1.0 - np.cos(np.radians(q)))))
-    qr = np.radians(q)
-    normal = np.stack([np.sin(qr) * ux, np.sin(qr) * uy, -np.cos(qr)], axis=-1)
-    return dist, q, height, normal
-
-
-def sweep_distance(points: np.ndarray, tip0: np.ndarray, tip1: np.ndarray, radius_mm: float,
-                   corner_mm: float, stickout_mm: float):
+def sweep_distance(points: np.ndarray, tip0: np.ndarray, tip1: np.ndarray, cutter: Cutter):
     """Distance from each point to the tool swept from ``tip0`` to ``tip1`` (pairs, vectorised).
 
     Parameters
@@ -95,7 +51,7 @@ def sweep_distance(points: np.ndarray, tip0: np.ndarray, tip1: np.ndarray, radiu
     seg = tip1 - tip0
 
     def f(t):
-        return tool_distance(points - tip0 - t[:, None] * seg, radius_mm, corner_mm, stickout_mm)[0]
+        return cutter.distance(points - tip0 - t[:, None] * seg)[0]
 
     lo, hi = np.zeros(len(points)), np.ones(len(points))
     m1, m2 = hi - _INV_PHI * (hi - lo), lo + _INV_PHI * (hi - lo)
@@ -114,7 +70,7 @@ def sweep_distance(points: np.ndarray, tip0: np.ndarray, tip1: np.ndarray, radiu
     cand = np.stack([t, np.zeros_like(t), np.ones_like(t)], 1)
     dists = np.stack([f(cand[:, k]) for k in range(3)], 1)
     t = cand[np.arange(len(t)), np.argmin(dists, axis=1)]
-    dist, q, height, normal = tool_distance(points - tip0 - t[:, None] * seg, radius_mm, corner_mm, stickout_mm)
+    dist, q, height, normal = cutter.distance(points - tip0 - t[:, None] * seg)
     return dist, t, q, height, normal
 
 

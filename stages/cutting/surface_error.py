@@ -214,7 +214,6 @@ def deepest_passage(res: dict, finished_by: np.ndarray, passes: pa.Table, rows: 
     pcol = lambda c: passes.column(c).to_numpy(zero_copy_only=False).astype(float)  # noqa: E731
     tip0 = np.stack([pcol("x0_mm"), pcol("y0_mm"), pcol("z0_mm")], 1)
     tip1 = np.stack([pcol("x1_mm"), pcol("y1_mm"), pcol("z1_mm")], 1)
-    rc = cutter.corner_mm
     tip0[:, 2] -= cutter.control_offset_mm
     tip1[:, 2] -= cutter.control_offset_mm
     n_p = passes.num_rows
@@ -234,11 +233,10 @@ def deepest_passage(res: dict, finished_by: np.ndarray, passes: pa.Table, rows: 
     length = np.linalg.norm(tip1 - tip0, axis=1) * feed_move
     usable = feed_move & has_defl
     owner = inv[rows]
-    radius, stick = cutter.radius_mm, cutter.stickout_mm
     ok = usable[owner]
     if not ok.any():
         return
-    d_own, t_own, _, _, n_own = pe.sweep_distance(gen_xyz, tip0[owner], tip1[owner], radius, rc, stick)
+    d_own, t_own, _, _, n_own = pe.sweep_distance(gen_xyz, tip0[owner], tip1[owner], cutter)
     s_c = s0[owner] + t_own * length[owner]
     flutes = cutter.flutes
     # C is the mean of surviving pixels, microns inside or off the pass's own nominal envelope (the
@@ -260,7 +258,7 @@ def deepest_passage(res: dict, finished_by: np.ndarray, passes: pa.Table, rows: 
         jj, rr = j[sl], r[sl]
         seg = tip1[jj] - tip0[jj]
         a, b = tip0[jj] + ta[sl, None] * seg, tip0[jj] + tb[sl, None] * seg
-        dist, t, q, height, _ = pe.sweep_distance(c_on[rr], a, b, radius, rc, stick)
+        dist, t, q, height, _ = pe.sweep_distance(c_on[rr], a, b, cutter)
         rel = c_on[rr] - (a + t[:, None] * (b - a))
         phi = np.degrees(np.arctan2(rel[:, 1], rel[:, 0]) - np.arctan2(seg[:, 1], seg[:, 0]))
         e = machining_error(dx_all[jj], dy_all[jj], phi, q, normal[rr], height, cutter, profile)

@@ -187,7 +187,6 @@ def passage_geometry(F: dict, passes: pa.Table, tool) -> dict:
         indexes F, ``move`` the program's moves (``pass_id[move]``).
     """
     cutter = Cutter.from_params(tool)
-    R, rc, stick = cutter.radius_mm, cutter.corner_mm, cutter.stickout_mm
     pid_col = np.asarray(passes.column("program_id").to_pylist(), dtype=object)
     pts = np.stack([F["x_mm"], F["y_mm"], F["z_mm"]], 1)
     out = {}
@@ -215,7 +214,7 @@ def passage_geometry(F: dict, passes: pa.Table, tool) -> dict:
         if not ok.any():
             continue
         m, owner = m[ok], owner[ok]
-        d_own, t_own, _, _, n_own = passages.sweep_distance(pts[m], tip0[owner], tip1[owner], R, rc, stick)
+        d_own, t_own, _, _, n_own = passages.sweep_distance(pts[m], tip0[owner], tip1[owner], cutter)
         s_c = s0[owner] + t_own * length[owner]
         c_on = pts[m] - d_own[:, None] * n_own
         r, j, ta, tb = passages.passage_pairs(owner, s_c, passages.PASSAGE_REVS * f_rev[owner], s0, length, chain, feed_move)
@@ -223,7 +222,7 @@ def passage_geometry(F: dict, passes: pa.Table, tool) -> dict:
             continue
         seg = tip1[j] - tip0[j]
         a, b = tip0[j] + ta[:, None] * seg, tip0[j] + tb[:, None] * seg
-        dist, t, q, height, _ = passages.sweep_distance(c_on[r], a, b, R, rc, stick)
+        dist, t, q, height, _ = passages.sweep_distance(c_on[r], a, b, cutter)
         # a move reaches the point only from inside its extent: the deflection cannot change at a
         # vertex (measured on the gap reference part: counting pass ends, 0.122 → 0.139 µm RMS)
         inside = passages.reaches_inside(t, ta, tb)

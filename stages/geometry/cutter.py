@@ -174,6 +174,42 @@ class Cutter:
         z = rc * (1.0 - np.cos(q))
         return np.stack(np.broadcast_arrays(r * np.cos(th), r * np.sin(th), z), axis=-1)
 
+    def distance(self, rel):
+        """Signed distance from points to the tool (tip at the origin, axis +z), and where it is.
+
+        Parameters
+        ----------
+        rel : ndarray (..., 3), points relative to the tip, mm
+
+        Returns
+        -------
+        dist : (...) mm to the tool surface, negative inside (the depth there); above the
+            stick-out nothing of the tool cuts
+        contact_deg : (...) contact angle q of the nearest tool point (0 at the tip, 90 on the side)
+        height_mm : (...) height of the nearest tool point above the tip
+        normal : (..., 3) outward unit normal of the tool there
+        """
+        R, rc = self.radius_mm, self.corner_mm
+        a = R - rc                                           # radius of the circle of corner centres
+        x, y, h = rel[..., 0], rel[..., 1], rel[..., 2]
+        r = np.hypot(x, y)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ux = np.where(r > 1e-12, x / np.where(r > 1e-12, r, 1.0), 1.0)
+            uy = np.where(r > 1e-12, y / np.where(r > 1e-12, r, 1.0), 0.0)
+        dr, dh = r - a, h - rc
+        on_bottom = r <= a                                   # under (or inside) the flat bottom
+        on_side = ~on_bottom & (dh > 0)                      # beside the cylindrical side
+        rho = np.hypot(np.maximum(dr, 0.0), np.minimum(dh, 0.0))
+        q_corner = np.degrees(np.arctan2(np.maximum(dr, 0.0), -np.minimum(dh, 0.0)))
+        dist = np.where(on_bottom, -h, np.where(on_side, r - R, rho - rc))
+        dist = np.where(h > self.stickout_mm, np.maximum(dist, h - self.stickout_mm), dist)
+        q = np.where(on_bottom, 0.0, np.where(on_side, 90.0, q_corner))
+        height = np.where(on_bottom, 0.0, np.where(on_side, np.clip(h, rc, self.stickout_mm),
+                                                   rc * (1.0 - np.cos(np.radians(q)))))
+        qr = np.radians(q)
+        normal = np.stack([np.sin(qr) * ux, np.sin(qr) * uy, -np.cos(qr)], axis=-1)
+        return dist, q, height, normal
+
     def clearance(self, points):
         """Distance of ``points`` (tip frame, (..., 3) mm) from the tool body, and its direction.
 

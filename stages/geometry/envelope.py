@@ -47,6 +47,7 @@ class EnvelopeMesh:
     face_normals : (nf, 3) outward unit normals of the quad faces.
     edges : (ne, 2, 3) silhouette-candidate edges (meridians and rings).
     edge_q_deg : (ne, 2) contact angle at the edge ends.
+    edge_theta_deg : (ne, 2) angle about the axis at the edge ends (from the seam, as ``theta_deg``).
     edge_faces : (ne, 2) the two faces adjacent to each edge.
     tol_mm : the tolerance the mesh was built for (mesh inside the true surface by <= tol_mm).
     """
@@ -62,6 +63,7 @@ class EnvelopeMesh:
     edges: np.ndarray
     edge_q_deg: np.ndarray
     edge_faces: np.ndarray
+    edge_theta_deg: np.ndarray
 
 
 def _profile_rows(shape: Cutter, tol_mm: float):
@@ -143,8 +145,11 @@ def envelope_mesh(shape: Cutter, tol_mm: float) -> EnvelopeMesh:
     edges = np.concatenate([mer.reshape(-1, 2, 3), rng[ring_ok].reshape(-1, 2, 3)])
     edge_q = np.concatenate([mer_q.reshape(-1, 2), rng_q[ring_ok].reshape(-1, 2)])
     edge_f = np.concatenate([mer_f.reshape(-1, 2), rng_f[ring_ok].reshape(-1, 2)])
+    mer_th = np.stack([thA, thD], axis=-1)
+    rng_th = np.stack([thA[1:], thB[1:]], axis=-1)
+    edge_th = np.concatenate([mer_th.reshape(-1, 2), rng_th[ring_ok].reshape(-1, 2)])
     return EnvelopeMesh(shape, float(tol_mm), n_theta, tris, qd, thd, fot,
-                        normals.reshape(-1, 3), edges, edge_q, edge_f)
+                        normals.reshape(-1, 3), edges, edge_q, edge_f, edge_th)
 
 
 def envelope_copies(mesh: EnvelopeMesh, tips, feed_deg=None, view_dir=None):

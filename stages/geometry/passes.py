@@ -10,8 +10,10 @@ from stages.geometry.cutter import Cutter
 
 # a move joined end to start to the next that turns less than this from it carries the same cut
 # on: the split stage's pieces of one line, a corrected line's via pieces, a curve's CAM chords
-# (see stages.scan.cut_passes.line_interior and stages.cutting.surface_error.deepest_passage)
+# (see stages.surface.cut_passes.line_interior and stages.cutting.surface_error.deepest_passage)
 CONTINUE_DEG = 10.0
+# a line's pieces turn by float noise only
+STRAIGHT_DEG = 0.01
 
 
 @dataclass
@@ -46,6 +48,47 @@ class PassGeometry:
         lo = np.minimum(self.p0, self.p1) - [shape.radius_mm, shape.radius_mm, 0.0]
         hi = np.maximum(self.p0, self.p1) + [shape.radius_mm, shape.radius_mm, shape.stickout_mm]
         return np.stack([lo, hi], axis=1)
+
+
+def path_turning(pg: PassGeometry):
+    """The program's path as joined chains and its turning.
+
+    Returns
+    -------
+    chain_start, chain_end : (n,) int
+        First and last pass of the chain each pass belongs to: passes joined end to start, no
+        rapid between them.
+    turned : (n,) float
+        Cumulative turning (deg) along the path: the turn from pass j to pass i is
+        ``turned[i] - turned[j]`` (non-decreasing; zero-length passes do not turn).
+    """
+    n = len(pg.pass_id)
+    d = pg.p1 - pg.p0
+    L = np.linalg.norm(d, axis=1)
+    u = d / np.maximum(L, 1e-12)[:, None]
+    turn = np.zeros(n)
+    brk = np.ones(n, bool)
+    if n > 1:
+        ang = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", u[:-1], u[1:]), -1.0, 1.0)))
+        turn[1:] = np.where((L[:-1] > 1e-9) & (L[1:] > 1e-9), ang, 0.0)
+        brk[1:] = ((pg.motion[:-1] == 0) | (pg.motion[1:] == 0)
+                   | (np.linalg.norm(pg.p0[1:] - pg.p1[:-1], axis=1) > 1e-6))
+    start = np.maximum.accumulate(np.where(brk, np.arange(n), 0))
+    last = np.r_[brk[1:], True]
+    end = np.minimum.accumulate(np.where(last, np.arange(n), n)[::-1])[::-1]
+    return start, end, np.cumsum(turn)
+
+
+def straight_run(pg: PassGeometry, idx: np.ndarray, turn_deg: float = STRAIGHT_DEG):
+    """First and last pass of the run around each pass ``idx`` that carries it straight on:
+    joined to it and turning by at most ``turn_deg`` in all from it (one line split into pieces,
+    or moved by a correction's float noise; a curve's chords turn, and a later chord of a concave
+    curve does cut below an earlier one's contact)."""
+    start, end, turned = path_turning(pg)
+    idx = np.asarray(idx, np.int64)
+    lo = np.searchsorted(turned, turned[idx] - turn_deg - 1e-9, side="left")
+    hi = np.searchsorted(turned, turned[idx] + turn_deg + 1e-9, side="right") - 1
+    return np.maximum(start[idx], lo), np.minimum(end[idx], hi)
 
 
 def pass_geometry(passes, tool) -> PassGeometry:

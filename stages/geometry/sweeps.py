@@ -15,6 +15,7 @@ import numpy as np
 from stages.geometry.cutter import Cutter
 from stages.geometry.envelope import EnvelopeMesh, envelope_copies
 from stages.render import Scene
+from stages.render.base import N_ATTR
 
 # Faces whose normal is within this (radians) of perpendicular to a pass count as parallel to it,
 # in the silhouette (sweep_bands) and in the joint lunes (joint_lunes). Why: the faces of a copy
@@ -32,7 +33,8 @@ def sweep_bands(mesh: EnvelopeMesh, p0, p1, view_dir=None):
     Together with :func:`envelope_copies` at ``p0`` and ``p1`` this renders the exact swept volume
     of the polyhedral tool. Vectorised over passes.
 
-    Returns tris (n, 3, 3), q_deg (n, 3), owner (n,) index into ``p0``.
+    Returns tris (n, 3, 3), q_deg (n, 3), owner (n,) index into ``p0``, theta_deg (n, 3) (the
+    angle about the axis from the seam).
     """
     p0 = np.atleast_2d(np.asarray(p0, float))
     p1 = np.atleast_2d(np.asarray(p1, float))
@@ -57,10 +59,12 @@ def sweep_bands(mesh: EnvelopeMesh, p0, p1, view_dir=None):
     a1 = mesh.edges[e, 0] + p1[k]
     b1 = mesh.edges[e, 1] + p1[k]
     qa, qb = mesh.edge_q_deg[e, 0], mesh.edge_q_deg[e, 1]
+    ha, hb = mesh.edge_theta_deg[e, 0], mesh.edge_theta_deg[e, 1]
     tris = np.concatenate([np.stack([a0, b0, b1], 1), np.stack([a0, b1, a1], 1)])
     q = np.concatenate([np.stack([qa, qb, qb], 1), np.stack([qa, qb, qa], 1)])
+    theta = np.concatenate([np.stack([ha, hb, hb], 1), np.stack([ha, hb, ha], 1)])
     owner = np.concatenate([k, k])
-    return tris, q, owner
+    return tris, q, owner, theta
 
 
 def sweep_triangles(mesh: EnvelopeMesh, p0, p1, view_dir=None):
@@ -70,15 +74,10 @@ def sweep_triangles(mesh: EnvelopeMesh, p0, p1, view_dir=None):
     """
     p0 = np.atleast_2d(np.asarray(p0, float))
     p1 = np.atleast_2d(np.asarray(p1, float))
-    k = len(p0)
     t0, q0, _, o0 = envelope_copies(mesh, p0, view_dir=view_dir)
     t1, q1, _, o1 = envelope_copies(mesh, p1, view_dir=view_dir)
-    tb, qb, ob = sweep_bands(mesh, p0, p1)
-    tris = np.concatenate([t0, t1, tb])
-    q = np.concatenate([q0, q1, qb])
-    owner = np.concatenate([o0, o1, ob])
-    del k
-    return tris, q, owner
+    tb, qb, ob, _ = sweep_bands(mesh, p0, p1, view_dir=view_dir)
+    return np.concatenate([t0, t1, tb]), np.concatenate([q0, q1, qb]), np.concatenate([o0, o1, ob])
 
 
 def chain_joints(seg0, seg1, window):
@@ -124,13 +123,13 @@ def joint_lunes(mesh: EnvelopeMesh, seg0, seg1, drop_end, view_dir=None, chunk: 
     through the lune meets no front face and sees through the sweep. The polyhedral silhouettes
     are the same edges the bands are built on, so the lune closes against them exactly.
 
-    Returns tris (n, 3, 3), q_deg (n, 3), owner (n,) index of segment i (its end copy).
+    Returns tris (n, 3, 3), q_deg (n, 3), owner (n,) index of segment i (its end copy), theta_deg (n, 3).
     """
     seg0 = np.asarray(seg0, float).reshape(-1, 3)
     seg1 = np.asarray(seg1, float).reshape(-1, 3)
     idx = np.nonzero(np.asarray(drop_end, bool))[0]
     if len(idx) == 0:
-        return np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0, np.int64)
+        return np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros((0, 3))
     u = _unit_directions(seg0, seg1)
     nrm = mesh.face_normals[mesh.face_of_tri]                          # (m, 3)
     tri_ok = (np.ones(len(nrm), bool) if view_dir is None
@@ -145,7 +144,7 @@ def joint_lunes(mesh: EnvelopeMesh, seg0, seg1, drop_end, view_dir=None, chunk: 
         owners.append(j[o])
         sels.append(cand[t])
     owner, sel = np.concatenate(owners), np.concatenate(sels)
-    return mesh.tris[sel] + seg1[owner, None, :], mesh.q_deg[sel], owner
+    return mesh.tris[sel] + seg1[owner, None, :], mesh.q_deg[sel], owner, mesh.theta_deg[sel]
 
 
 def ordered_sweep_scene(mesh: EnvelopeMesh, p0, p1, ident, view_dir=(0.0, 0.0, 1.0), bias=0.0):
@@ -155,23 +154,26 @@ def ordered_sweep_scene(mesh: EnvelopeMesh, p0, p1, ident, view_dir=(0.0, 0.0, 1
     the silhouette bands come before the end copies: within one convex sweep each pixel then
     passes the depth test once, so fragment counts are pixel counts. Attributes: id
     ``ident[k]``, a = position along the pass (0 at p0, 1 at p1; beyond on the end copies),
-    b = contact angle q.
+    b = contact angle q, c = the angle θ of the envelope point about the tool axis, counter-
+    clockwise from +X (the copies are not turned to the feed: the rotation angle φ is θ minus the
+    pass's feed direction).
     """
     p0 = np.asarray(p0, float).reshape(-1, 3)
     p1 = np.asarray(p1, float).reshape(-1, 3)
-    tb, qb, ob = sweep_bands(mesh, p0, p1, view_dir=view_dir)
+    tb, qb, ob, hb = sweep_bands(mesh, p0, p1, view_dir=view_dir)
     drop0, drop1 = chain_joints(p0, p1, np.zeros(len(p0)))
-    t0, q0, _, o0 = envelope_copies(mesh, p0[~drop0], view_dir=view_dir)
+    t0, q0, h0, o0 = envelope_copies(mesh, p0[~drop0], view_dir=view_dir)
     o0 = np.nonzero(~drop0)[0][o0]
-    t1, q1, _, o1 = envelope_copies(mesh, p1[~drop1], view_dir=view_dir)
+    t1, q1, h1, o1 = envelope_copies(mesh, p1[~drop1], view_dir=view_dir)
     o1 = np.nonzero(~drop1)[0][o1]
-    tl, ql, ol = joint_lunes(mesh, p0, p1, drop1, view_dir=view_dir)
+    tl, ql, ol, hl = joint_lunes(mesh, p0, p1, drop1, view_dir=view_dir)
     tris = np.concatenate([tb, t0, t1, tl])
     q = np.concatenate([qb, q0, q1, ql])
+    theta = np.concatenate([hb, h0, h1, hl])
     key = np.concatenate([ob * 3, o0 * 3 + 1, o1 * 3 + 2, ol * 3 + 2])
     order = np.argsort(key, kind="stable")
     owner = key[order] // 3
-    tris, q = tris[order], q[order]
+    tris, q, theta = tris[order], q[order], theta[order]
     # a: position along the pass of the point itself, projected in 3-D on the line of corner
     # centres (linear in space, so exact under interpolation; the facets of a polyhedral
     # silhouette would misplace a per-end 0/1 label by up to half a facet)
@@ -180,10 +182,11 @@ def ordered_sweep_scene(mesh: EnvelopeMesh, p0, p1, ident, view_dir=(0.0, 0.0, 1
     c0 = p0 + (0.0, 0.0, mesh.shape.corner_mm)
     a = np.einsum("tkj,tj->tk", tris - c0[owner, None, :], d[owner]) / np.where(dd > 1e-12, dd, 1.0)[owner, None]
     a = np.where((dd > 1e-12)[owner, None], a, 0.5)
-    attrs = np.empty((len(order), 3, 3), np.float32)
+    attrs = np.empty((len(order), 3, N_ATTR), np.float32)
     attrs[:, :, 0] = np.asarray(ident, float)[owner, None]
     attrs[:, :, 1] = a
     attrs[:, :, 2] = q
+    attrs[:, :, 3] = theta
     return Scene(tris, attrs, np.full(len(order), float(bias)), np.zeros(len(order), np.int64))
 
 
@@ -200,102 +203,6 @@ def sweep_lowest_z(shape: Cutter, p0, p1, xy, n_t: int = 2001):
     d = np.hypot(xy[:, None, 0] - tips[None, :, 0], xy[:, None, 1] - tips[None, :, 1])
     z = shape.lowest_z(d) + tips[None, :, 2]
     return np.nanmin(np.where(np.isnan(z), np.inf, z), axis=1)
-
-
-def segment_scene(mesh: EnvelopeMesh, seg0, seg1, window, tri_id, view_dir, bias=0.0,
-                  window_bounds=None, coarse_mesh=None, fine_ends=None):
-    """Scene of the swept volumes of segments ``seg0[k] -> seg1[k]`` drawn into ``window[k]``.
-
-    Identical segments (the same pass seen by several windows of a batch) are meshed once. Each
-    sweep has three parts (end copies and silhouette bands); with ``window_bounds`` = (lo, hi)
-    xy bounds per window, parts that miss their window are not copied at all.
-    ``tri_id`` (k,) is the id stored in the pixels; attribute ``b`` is the contact angle q.
-    Level of detail: with ``coarse_mesh`` and ``fine_ends`` (k, 2) bool, segment ends flagged
-    False are drawn with the coarse mesh (far from where precision matters).
-    """
-    seg0 = np.asarray(seg0, float).reshape(-1, 3)
-    seg1 = np.asarray(seg1, float).reshape(-1, 3)
-    window = np.asarray(window, np.int64).reshape(-1)
-    k = len(seg0)
-    if k == 0:
-        return Scene.concat([])
-    if fine_ends is None or coarse_mesh is None:
-        fine_ends = np.ones((k, 2), bool)
-        coarse_mesh = mesh
-    fine_ends = np.asarray(fine_ends, bool).reshape(k, 2)
-    key = np.concatenate([seg0, seg1, fine_ends], 1)
-    uniq, inv = np.unique(key, axis=0, return_inverse=True)
-    inv = inv.reshape(-1)
-    nu = len(uniq)
-    f0, f1 = uniq[:, 6] > 0.5, uniq[:, 7] > 0.5
-    # which (window, part) pairs are drawn, decided before any triangle is built: part 0/1 = the
-    # copy at the start/end, 2 = the silhouette bands; a copy lies within the mesh's box moved to
-    # its point, the bands within the union of the two copies' boxes (conservative bounds)
-    pair = np.repeat(np.arange(k), 3)
-    grp = (inv[:, None] * 3 + np.arange(3)[None]).reshape(-1)
-    ok = np.ones(3 * k, bool)
-    drop0, drop1 = chain_joints(seg0, seg1, window)
-    ok &= ~np.stack([drop0, drop1, np.zeros(k, bool)], 1).reshape(-1)
-    lune_t, lune_q, lune_o = [], [], []
-    if window_bounds is not None:
-        flat = mesh.tris.reshape(-1, 3)
-        mlo, mhi = flat.min(0) - mesh.tol_mm, flat.max(0) + mesh.tol_mm     # the true envelope's box
-        lo = np.empty((nu, 3, 3))
-        hi = np.empty((nu, 3, 3))
-        lo[:, 0], hi[:, 0] = uniq[:, 0:3] + mlo, uniq[:, 0:3] + mhi
-        lo[:, 1], hi[:, 1] = uniq[:, 3:6] + mlo, uniq[:, 3:6] + mhi
-        lo[:, 2], hi[:, 2] = np.minimum(lo[:, 0], lo[:, 1]), np.maximum(hi[:, 0], hi[:, 1])
-        lo, hi = lo.reshape(-1, 3), hi.reshape(-1, 3)
-        wlo, whi = (np.asarray(a_, float) for a_ in window_bounds)
-        w = window[pair]
-        ok &= ((lo[grp, 0] <= whi[w, 0]) & (hi[grp, 0] >= wlo[w, 0])
-               & (lo[grp, 1] <= whi[w, 1]) & (hi[grp, 1] >= wlo[w, 1]))
-    need = np.zeros(3 * nu, bool)
-    need[grp[ok]] = True
-    need = need.reshape(nu, 3)
-    parts_t, parts_q, parts_g = [], [], []
-    for end, flags in ((0, f0), (1, f1)):
-        pts = uniq[:, 3 * end:3 * end + 3]
-        for m_, sel in ((mesh, np.nonzero(flags & need[:, end])[0]), (coarse_mesh, np.nonzero(~flags & need[:, end])[0])):
-            if len(sel):
-                t_, q_, _, o_ = envelope_copies(m_, pts[sel], view_dir=view_dir)
-                parts_t.append(t_), parts_q.append(q_), parts_g.append(sel[o_] * 3 + end)
-    # the bands use the finer mesh of the two ends (cracks, if any, stay below that tolerance)
-    for m_, sel in ((mesh, np.nonzero((f0 | f1) & need[:, 2])[0]), (coarse_mesh, np.nonzero(~(f0 | f1) & need[:, 2])[0])):
-        if len(sel):
-            t_, q_, o_ = sweep_bands(m_, uniq[sel, :3], uniq[sel, 3:6])
-            parts_t.append(t_), parts_q.append(q_), parts_g.append(sel[o_] * 3 + 2)
-    # the lunes of the left-out joint copies, per segment (they depend on the next segment too)
-    lune_end = drop1.copy()
-    if window_bounds is not None:
-        lune_end &= ((seg1[:, 0] + mlo[0] <= whi[window, 0]) & (seg1[:, 0] + mhi[0] >= wlo[window, 0])
-                     & (seg1[:, 1] + mlo[1] <= whi[window, 1]) & (seg1[:, 1] + mhi[1] >= wlo[window, 1]))
-    fine_lune = fine_ends[:, 1]
-    for m_, sel in ((mesh, lune_end & fine_lune), (coarse_mesh, lune_end & ~fine_lune)):
-        if sel.any():
-            t_, q_, o_ = joint_lunes(m_, seg0, seg1, sel, view_dir=view_dir)
-            lune_t.append(t_), lune_q.append(q_), lune_o.append(o_)
-    if not parts_t and not lune_t:
-        return Scene.concat([])
-    tris = np.concatenate(parts_t) if parts_t else np.zeros((0, 3, 3))
-    q = np.concatenate(parts_q) if parts_q else np.zeros((0, 3))
-    group = np.concatenate(parts_g) if parts_g else np.zeros(0, np.int64)
-    order = np.argsort(group, kind="stable")
-    tris, q, group = tris[order], q[order], group[order]
-    starts = np.searchsorted(group, np.arange(3 * nu + 1))
-    counts = np.diff(starts)
-    ok &= counts[grp] > 0
-    pair, grp = pair[ok], grp[ok]
-    cnt = counts[grp]
-    idx = ragged_ranges(starts[:-1][grp], cnt)
-    rep = np.concatenate([np.repeat(pair, cnt)] + lune_o)
-    tris = np.concatenate([tris[idx]] + lune_t)
-    q = np.concatenate([q[idx]] + lune_q)
-    attrs = np.zeros((len(rep), 3, 3), np.float32)
-    attrs[:, :, 0] = np.broadcast_to(np.asarray(tri_id, float), (k,))[rep, None]
-    attrs[:, :, 2] = q
-    return Scene(tris, attrs, np.broadcast_to(np.asarray(bias, float), (k,))[rep].copy(),
-                 window[rep])
 
 
 def ragged_ranges(starts, counts):

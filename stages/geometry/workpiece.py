@@ -10,6 +10,7 @@ import numpy as np
 from stages import InputError
 from stages.geometry.passes import overlaps, window_xy_bounds
 from stages.render import Scene
+from stages.render.base import N_ATTR
 
 
 @dataclass(frozen=True)
@@ -34,6 +35,50 @@ def _from_trimesh(m) -> Workpiece:
     tris = np.asarray(m.triangles, dtype=float)
     n = np.asarray(m.face_normals, dtype=float)
     return Workpiece(tris, n, np.asarray(m.bounds, float))
+
+
+class StockTop:
+    """The stock's top at any xy, exact between pixels: the highest of its triangles over the point
+    (the stock as 3-axis machining sees it; a vertical face has no top and a wall is where the top
+    drops). The triangles are binned by their xy bounds into square cells of ``cell_mm``."""
+
+    def __init__(self, wp: Workpiece, cell_mm: float = 1.0):
+        t = wp.tris
+        a, b = t[:, 1, :2] - t[:, 0, :2], t[:, 2, :2] - t[:, 0, :2]
+        det = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+        keep = np.abs(det) > 1e-12
+        self._t0, self._a, self._b, self._det = t[keep, 0], a[keep], b[keep], det[keep]
+        self._dz = np.stack([t[keep, 1, 2] - t[keep, 0, 2], t[keep, 2, 2] - t[keep, 0, 2]], 1)
+        self._lo, self._cell = wp.bounds[0, :2].astype(float), float(cell_mm)
+        c0 = np.floor((t[keep, :, :2].min(1) - self._lo) / cell_mm).astype(np.int64)
+        c1 = np.floor((t[keep, :, :2].max(1) - self._lo) / cell_mm).astype(np.int64)
+        self._shape = (int(c1[:, 0].max(initial=0)) + 1, int(c1[:, 1].max(initial=0)) + 1)
+        nx, ny = c1[:, 0] - c0[:, 0] + 1, c1[:, 1] - c0[:, 1] + 1
+        k = np.repeat(np.arange(len(c0)), nx * ny)
+        off = np.arange(k.size) - np.repeat(np.cumsum(nx * ny) - nx * ny, nx * ny)
+        cells = (c0[k, 0] + off % nx[k]) * self._shape[1] + c0[k, 1] + off // nx[k]
+        order = np.argsort(cells, kind="stable")
+        self._cells, self._tri = cells[order], k[order]
+
+    def z(self, xy: np.ndarray) -> np.ndarray:
+        """Top of the stock at points ``xy`` (n, 2); -inf off the stock."""
+        xy = np.asarray(xy, float).reshape(-1, 2)
+        c = np.floor((xy - self._lo) / self._cell).astype(np.int64)
+        ok = (c >= 0).all(1) & (c[:, 0] < self._shape[0]) & (c[:, 1] < self._shape[1])
+        key = np.where(ok, c[:, 0] * self._shape[1] + c[:, 1], -1)
+        lo = np.searchsorted(self._cells, key, side="left")
+        n = np.where(ok, np.searchsorted(self._cells, key, side="right") - lo, 0)
+        pt = np.repeat(np.arange(len(xy)), n)
+        tri = self._tri[np.repeat(lo - np.cumsum(n) + n, n) + np.arange(pt.size)]
+        v = xy[pt] - self._t0[tri, :2]
+        a, b, det = self._a[tri], self._b[tri], self._det[tri]
+        l1 = (v[:, 0] * b[:, 1] - v[:, 1] * b[:, 0]) / det
+        l2 = (a[:, 0] * v[:, 1] - a[:, 1] * v[:, 0]) / det
+        inside = (l1 >= -1e-9) & (l2 >= -1e-9) & (l1 + l2 <= 1.0 + 1e-9)
+        z = self._t0[tri, 2] + l1 * self._dz[tri, 0] + l2 * self._dz[tri, 1]
+        top = np.full(len(xy), -np.inf)
+        np.maximum.at(top, pt[inside], z[inside])
+        return top
 
 
 class DesignSurface:
@@ -146,7 +191,7 @@ def workpiece_scene(wp: Workpiece, views, tri_id=0.0):
     tlo, thi = wp.tris.min(1), wp.tris.max(1)
     d = np.array([np.asarray(v.view_dir, float) / np.linalg.norm(v.view_dir) for v in views])
     win, tri = np.nonzero(overlaps(lo_w, hi_w, tlo, thi) & ((d @ wp.normals.T) > 1e-9))
-    attrs = np.zeros((len(tri), 3, 3), np.float32)
+    attrs = np.zeros((len(tri), 3, N_ATTR), np.float32)
     attrs[:, :, 0] = tri_id
     attrs[:, :, 2] = -1.0
     return Scene(wp.tris[tri], attrs, np.zeros(len(tri)), win.astype(np.int64))

@@ -7,11 +7,11 @@ from stages.render.backends import make_renderer
 from stages.render.base import (
     Image,
     Renderer,
+    CutLog,
     ScanResult,
     Scene,
-    Snapshot,
     View,
     make_scene,
 )
 
-__all__ = ["Image", "Renderer", "Scene", "ScanResult", "Snapshot", "View", "make_renderer", "make_scene"]
+__all__ = ["CutLog", "Image", "Renderer", "Scene", "ScanResult", "View", "make_renderer", "make_scene"]

@@ -36,6 +36,7 @@ TRI_BUDGET = 1_500_000          # triangles per draw (bounds the vertex buffer t
 
 
 TIE_DEPTH = 1e-9                # depth (0..1 of the view's range) below which the scan sees a tie
+N_ATTR = 4                      # per-corner attributes: id, a, b, c
 
 
 @dataclass(frozen=True)
@@ -102,13 +103,14 @@ class Image:
     id: np.ndarray      # (h, w) int64
     a: np.ndarray       # (h, w) float32
     b: np.ndarray       # (h, w) float32
+    c: np.ndarray | None = None   # (h, w) float32, the fourth attribute (scans only)
 
 
 @dataclass
 class Scene:
     """Triangles for a batch of windows.
 
-    tris : (n, 3, 3) world corners (mm). attrs : (n, 3, 3) per-corner (id, a, b).
+    tris : (n, 3, 3) world corners (mm). attrs : (n, 3, 4) per-corner (id, a, b, c).
     bias : (n,) depth bias in mm added before the depth test (pushes a triangle back).
     window : (n,) index of the view each triangle belongs to.
     """
@@ -122,7 +124,7 @@ class Scene:
     def concat(parts):
         parts = [p for p in parts if p is not None and len(p.tris)]
         if not parts:
-            return Scene(np.zeros((0, 3, 3)), np.zeros((0, 3, 3), np.float32), np.zeros(0),
+            return Scene(np.zeros((0, 3, 3)), np.zeros((0, 3, N_ATTR), np.float32), np.zeros(0),
                          np.zeros(0, np.int64))
         return Scene(np.concatenate([p.tris for p in parts]),
                      np.concatenate([p.attrs for p in parts]),
@@ -130,17 +132,19 @@ class Scene:
                      np.concatenate([p.window for p in parts]))
 
 
-def make_scene(tris, window, tri_id, a=None, b=None, bias=0.0):
-    """Scene from triangles with one id per triangle and per-corner attributes a, b."""
+def make_scene(tris, window, tri_id, a=None, b=None, bias=0.0, c=None):
+    """Scene from triangles with one id per triangle and per-corner attributes a, b, c."""
     tris = np.asarray(tris, float).reshape(-1, 3, 3)
     n = len(tris)
-    attrs = np.zeros((n, 3, 3), np.float32)
+    attrs = np.zeros((n, 3, N_ATTR), np.float32)
     attrs[:, :, 0] = np.broadcast_to(np.asarray(tri_id, float).reshape(-1, 1) if np.ndim(tri_id)
                                      else tri_id, (n, 3))
     if a is not None:
         attrs[:, :, 1] = np.broadcast_to(a, (n, 3))
     if b is not None:
         attrs[:, :, 2] = np.broadcast_to(b, (n, 3))
+    if c is not None:
+        attrs[:, :, 3] = np.broadcast_to(c, (n, 3))
     return Scene(tris, attrs, np.broadcast_to(np.asarray(bias, float), (n,)).copy(),
                  np.broadcast_to(np.asarray(window), (n,)).astype(np.int64))
 
@@ -163,7 +167,7 @@ def _pack(views, atlas_px):
 
 
 def _to_atlas(views, scene, offsets):
-    """Atlas-space vertices: (n, 3, 3) [x_px, y_px, depth01], attrs+depth (n, 3, 4), rect (n, 4).
+    """Atlas-space vertices: (n, 3, 3) [x_px, y_px, depth01], attrs+depth (n, 3, 5), rect (n, 4).
 
     ``scene.window`` must be sorted (the renderer sorts it): each window's triangles are then a
     contiguous block transformed by one small matrix product.
@@ -198,10 +202,32 @@ def _to_atlas(views, scene, offsets):
     pos[..., 0] = xyz[..., 0] + rect[:, None, 0]
     pos[..., 1] = xyz[..., 1] + rect[:, None, 1]
     pos[..., 2] = xyz[..., 2] / span[:, None]
-    attrs = np.empty((len(pos), 3, 4), np.float32)
-    attrs[..., :3] = scene.attrs[keep]
-    attrs[..., 3] = xyz[..., 2]
+    attrs = np.empty((len(pos), 3, N_ATTR + 1), np.float32)
+    attrs[..., :N_ATTR] = scene.attrs[keep]
+    attrs[..., N_ATTR] = xyz[..., 2]
     return pos, attrs, rect.astype(np.float64), scene.window[keep]
+
+
+@dataclass
+class CutLog:
+    """Every fragment that passed the depth test of a scan: the depth each cut left.
+
+    pix : (m,) int64 flat pixel index (row · width + column); ident : (m,) int32 id of the triangle;
+    depth : (m,) float32 depth (mm along the view from its centre). Entries are in no particular
+    order; within one id at one pixel the nearest is what the cut left.
+    """
+
+    pix: np.ndarray
+    ident: np.ndarray
+    depth: np.ndarray
+
+    @staticmethod
+    def concat(parts):
+        parts = list(parts)
+        if not parts:
+            return CutLog(np.zeros(0, np.int64), np.zeros(0, np.int32), np.zeros(0, np.float32))
+        return CutLog(np.concatenate([p.pix for p in parts]), np.concatenate([p.ident for p in parts]),
+                      np.concatenate([p.depth for p in parts]))
 
 
 @dataclass
@@ -210,24 +236,17 @@ class ScanResult:
 
     counts : (n_ids, n_bins) fragments of each id that passed the depth test, by bin of ``a``.
     b_max : (n_ids,) largest ``b`` among them (-inf where none passed).
-    final : the final image (id -1 where no counted triangle is the last passing fragment).
-    snapshots : depth (mm along the view) over each :class:`Snapshot` rectangle, in order.
+    final : the final image: per pixel the last passing fragment's id (-1: none), ``b``, ``c``
+        and depth (+inf off the stock); ``a`` is not kept (NaN).
+    stock_depth : (h, w) depth of the stock's top (mm along the view; +inf off the stock).
+    log : the :class:`CutLog` when asked for, else None.
     """
 
     counts: np.ndarray
     b_max: np.ndarray
     final: Image
-    snapshots: list
-
-
-@dataclass(frozen=True)
-class Snapshot:
-    """Marker in the batches of :meth:`Renderer.scan`: read the depth over these pixels now."""
-
-    row0: int
-    col0: int
-    rows: int
-    cols: int
+    stock_depth: np.ndarray
+    log: "CutLog | None" = None
 
 
 class Renderer:
@@ -279,9 +298,8 @@ class Renderer:
             i = j
         return images
 
-    def scan(self, view, stock: Scene, batches, n_ids: int, n_bins: int = 20,
-             on_snapshot=None) -> "ScanResult":
-        """Ordered depth scan of one window: claims 7 and 8 in one render.
+    def scan(self, view, stock: Scene, batches, n_ids: int, n_bins: int = 20, log: bool = False) -> ScanResult:
+        """Ordered depth scan of one window: claims 7 and 8 in one render, and the cut log.
 
         The stock is drawn first (its top surface: the farthest stock face, so pixels off the
         stock can never be cut), then the triangles of ``batches`` strictly in their order with
@@ -290,15 +308,12 @@ class Renderer:
         a sweep that is where the pass cuts. Per id (attribute 0, ``>= 0``; negative ids are
         drawn but not counted) the scan counts passing fragments in ``n_bins`` bins of attribute
         ``a`` (in [0, 1], e.g. the position along the pass) and keeps the largest attribute ``b``
-        (e.g. the contact angle). The returned image holds, per pixel, the last passing fragment:
-        the final surface and which id left it.
+        (e.g. the contact angle). The final image holds, per pixel, the last passing fragment:
+        the final surface and which id left it. With ``log`` every passing fragment's pixel, id
+        and depth are kept (:class:`CutLog`): the depth a cut replaced is the one before it there.
 
-        Memory is bounded by the window and the triangle budget per draw: ``batches`` is any
-        iterable of scenes (e.g. a generator over pass ranges), each split into draws. A
-        :class:`Snapshot` among them records the depth buffer (mm along the view, ``near_mm``
-        where nothing is) over its pixel rectangle at that point of the scan: the material left
-        at that moment (``ScanResult.snapshots``, in order; or passed to ``on_snapshot(depth)``
-        as it is taken, so that memory does not grow with the number of snapshots).
+        Memory is bounded by the window, the triangle budget per draw and the log: ``batches`` is
+        any iterable of scenes (e.g. a generator over pass ranges), each split into draws.
         """
         h, w = view.shape
         if max(h, w) > self.max_atlas_px():
@@ -306,30 +321,33 @@ class Renderer:
         offs = [(0, 0, 0)]
         counts = np.zeros((n_ids, n_bins), np.int64)
         b_max = np.full(n_ids, -np.inf)
-        snaps = []
-        self._scan_start((h, w), n_ids, n_bins)
+        logs = []
+        self._scan_start((h, w), n_ids, n_bins, log)
         try:
             pos, attrs, rect, _ = _to_atlas([view], stock, offs)
             self._scan_stock(pos, attrs, rect)
+            stock01 = self._scan_depth(0, 0, h, w)
             for sc in batches:
-                if isinstance(sc, Snapshot):
-                    r0, c0 = sc.row0, sc.col0
-                    d01 = self._scan_depth(r0, c0, sc.rows, sc.cols)
-                    (on_snapshot or snaps.append)(d01 * (view.far_mm - view.near_mm) + view.near_mm)
-                    continue
                 for a in range(0, len(sc.tris), self.tri_budget):
                     part = Scene(sc.tris[a:a + self.tri_budget], sc.attrs[a:a + self.tri_budget],
                                  sc.bias[a:a + self.tri_budget],
                                  np.zeros(min(self.tri_budget, len(sc.tris) - a), np.int64))
                     pos, attrs, rect, _ = _to_atlas([view], part, offs)
                     self._scan_draw(pos, attrs, rect, counts, b_max, n_bins)
+                if log:
+                    logs.append(self._scan_log())
         finally:
             color = self._scan_finish(counts, b_max)
         empty = color[..., 0] < -0.5
         depth = np.where(empty, np.inf, color[..., 3].astype(np.float64) + view.near_mm)
         final = Image(view, depth, np.where(empty, -1, np.rint(color[..., 0])).astype(np.int64),
-                      color[..., 1].copy(), color[..., 2].copy())
-        return ScanResult(counts, b_max, final, snaps)
+                      np.full((h, w), np.nan, np.float32), color[..., 1].copy(), color[..., 2].copy())
+        stock_depth = np.where(stock01 > 0, stock01 * (view.far_mm - view.near_mm) + view.near_mm, np.inf)
+        cut = None
+        if log:
+            cut = CutLog.concat(logs)
+            cut.depth = (cut.depth.astype(np.float64) + view.near_mm).astype(np.float32)
+        return ScanResult(counts, b_max, final, stock_depth, cut)
 
     def max_atlas_px(self):
         return 8192

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stages.render.base import TIE_DEPTH, Renderer
+from stages.render.base import N_ATTR, TIE_DEPTH, CutLog, Renderer
 
 
 class CPURenderer(Renderer):
@@ -94,11 +94,11 @@ class CPURenderer(Renderer):
             w2buf[ps] = w2f[o]
         return _interpolate(attrs, tbuf, w1buf, w2buf, H, W)
 
-    def _scan_start(self, size, n_ids, n_bins):
+    def _scan_start(self, size, n_ids, n_bins, log=False):
         H, W = size
         color = np.zeros((H * W, 4), np.float32)
         color[:, 0] = -1
-        self._scan = dict(size=size, z=np.zeros(H * W), color=color)
+        self._scan = dict(size=size, z=np.zeros(H * W), color=color, log=[] if log else None)
 
     def _scan_stock(self, pos, attrs, rect):
         st = self._scan
@@ -134,6 +134,8 @@ class CPURenderer(Renderer):
             return
         a = attrs[tt, 0] * (1 - w1f - w2f)[:, None] + attrs[tt, 1] * w1f[:, None] + attrs[tt, 2] * w2f[:, None]
         ident = np.rint(a[:, 0]).astype(np.int64)
+        if st["log"] is not None:
+            st["log"].append(CutLog(pix.astype(np.int64), ident.astype(np.int32), a[:, N_ATTR].astype(np.float32)))
         cnt = ident >= 0
         b = np.clip((a[:, 1] * n_bins).astype(np.int64), 0, n_bins - 1)
         np.add.at(counts, (ident[cnt], b[cnt]), 1)
@@ -143,7 +145,13 @@ class CPURenderer(Renderer):
         last[:-1] = pix[1:] != pix[:-1]
         ps = pix[last]
         st["z"][ps] = d[last]
-        st["color"][ps] = a[last]
+        st["color"][ps] = a[last][:, [0, 2, 3, N_ATTR]]       # id, b, c, depth
+
+    def _scan_log(self):
+        st = self._scan
+        out = CutLog.concat(st["log"])
+        st["log"] = []
+        return out
 
     def _scan_depth(self, r0, c0, rows, cols):
         H, W = self._scan["size"]
@@ -162,5 +170,6 @@ def _interpolate(attrs, tbuf, w1buf, w2buf, H, W):
     hit = np.nonzero(tbuf >= 0)[0]
     t = tbuf[hit]
     w1, w2 = w1buf[hit, None], w2buf[hit, None]
-    color[hit] = attrs[t, 0] * (1 - w1 - w2) + attrs[t, 1] * w1 + attrs[t, 2] * w2
+    full = attrs[t, 0] * (1 - w1 - w2) + attrs[t, 1] * w1 + attrs[t, 2] * w2
+    color[hit] = full[:, [0, 1, 2, N_ATTR]]                  # id, a, b, depth
     return color.reshape(H, W, 4)

@@ -3,7 +3,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from stages.render.base import Renderer
+from stages.render.base import CutLog, Renderer
+
+LOG_PER_PIXEL = 8          # room in the scan's log per pixel of the window, per batch
 
 _GL_CONTEXT = None
 
@@ -16,12 +18,15 @@ _VS = """
 uniform vec2 size;
 in vec3 in_pos;
 in vec4 in_attr;
+in float in_depth;
 in vec4 in_rect;
 out vec4 v_attr;
+out float v_depth;
 void main() {
     gl_Position = vec4(in_pos.x / size.x * 2.0 - 1.0, in_pos.y / size.y * 2.0 - 1.0,
                        in_pos.z * 2.0 - 1.0, 1.0);
     v_attr = in_attr;
+    v_depth = in_depth;
     // clip to the triangle's own window of the atlas (clip planes keep early depth testing)
     gl_ClipDistance[0] = in_pos.x - in_rect.x;
     gl_ClipDistance[1] = in_rect.z - in_pos.x;
@@ -34,9 +39,10 @@ void main() {
 _FS = """
 #version 330
 in vec4 v_attr;
+in float v_depth;
 out vec4 f_color;
 void main() {
-    f_color = v_attr;
+    f_color = vec4(v_attr.xyz, v_depth);
 }
 """
 
@@ -49,9 +55,13 @@ _SCAN_FS = """
 layout(early_fragment_tests) in;          // only fragments that pass the depth test run this
 layout(std430, binding = 0) buffer Counts { uint counts[]; };
 layout(std430, binding = 1) buffer BMax { int bmax[]; };
+layout(std430, binding = 2) buffer Log { uint n_log; uint pad0; uint pad1; uint pad2; uvec4 entries[]; };
 uniform int n_bins;
 uniform int stock;
+uniform int log_cap;       // entries the log holds (0: no log)
+uniform int width;
 in vec4 v_attr;
+in float v_depth;
 out vec4 f_color;
 void main() {
     if (stock == 1) {
@@ -64,7 +74,14 @@ void main() {
         atomicAdd(counts[ident * n_bins + bin], 1u);
         atomicMax(bmax[ident], int(round(v_attr.z * 1000.0)));
     }
-    f_color = v_attr;
+    if (log_cap > 0) {
+        uint i = atomicAdd(n_log, 1u);
+        if (i < uint(log_cap)) {
+            uint pix = uint(gl_FragCoord.y) * uint(width) + uint(gl_FragCoord.x);
+            entries[i] = uvec4(pix, uint(ident), floatBitsToUint(v_depth), 0u);
+        }
+    }
+    f_color = vec4(v_attr.x, v_attr.z, v_attr.w, v_depth);
 }
 """
 
@@ -137,12 +154,12 @@ class GLRenderer(Renderer):
             return
         H, W = size
         n = len(pos)
-        data = np.empty((n, 3, 11), np.float32)
+        data = np.empty((n, 3, 12), np.float32)
         data[..., 0:3] = pos
-        data[..., 3:7] = attrs
-        data[..., 7:11] = rect[:, None, :]
+        data[..., 3:8] = attrs                          # id, a, b, c, depth
+        data[..., 8:12] = rect[:, None, :]
         vbo = self.ctx.buffer(data.tobytes())
-        vao = self.ctx.vertex_array(prog, [(vbo, "3f 4f 4f", "in_pos", "in_attr", "in_rect")])
+        vao = self.ctx.vertex_array(prog, [(vbo, "3f 4f 1f 4f", "in_pos", "in_attr", "in_depth", "in_rect")])
         prog["size"].value = (float(W), float(H))
         vao.render(self._mgl.TRIANGLES)
         vao.release()
@@ -159,17 +176,24 @@ class GLRenderer(Renderer):
         self._draw(self.prog, pos, attrs, rect, size)
         return self._read(fbo, size)
 
-    def _scan_start(self, size, n_ids, n_bins):
+    def _scan_start(self, size, n_ids, n_bins, log=False):
         if self._scan_prog is None:
             self._scan_prog = self.ctx.program(vertex_shader=_SCAN_VS, fragment_shader=_SCAN_FS)
+        H, W = size
         fbo = self._begin(size, 0.0)                  # off the stock nothing can pass
         counts = self.ctx.buffer(reserve=max(4, 4 * n_ids * n_bins))
         counts.clear()
         bmax = self.ctx.buffer(np.full(max(1, n_ids), np.iinfo(np.int32).min, np.int32).tobytes())
+        cap = LOG_PER_PIXEL * H * W if log else 0
+        logbuf = self.ctx.buffer(reserve=16 + 16 * max(cap, 1))
+        logbuf.clear(size=16)
         counts.bind_to_storage_buffer(0)
         bmax.bind_to_storage_buffer(1)
+        logbuf.bind_to_storage_buffer(2)
         self._scan_prog["n_bins"].value = int(n_bins)
-        self._scan = dict(fbo=fbo, size=size, counts=counts, bmax=bmax, n=(n_ids, n_bins))
+        self._scan_prog["width"].value = int(W)
+        self._scan_prog["log_cap"].value = 0
+        self._scan = dict(fbo=fbo, size=size, counts=counts, bmax=bmax, n=(n_ids, n_bins), log=logbuf, cap=cap)
 
     def _scan_stock(self, pos, attrs, rect):
         self.ctx.depth_func = ">"                     # farthest stock face: top of the material
@@ -179,7 +203,22 @@ class GLRenderer(Renderer):
     def _scan_draw(self, pos, attrs, rect, counts, b_max, n_bins):
         self.ctx.depth_func = "<"
         self._scan_prog["stock"].value = 0
+        self._scan_prog["log_cap"].value = int(self._scan["cap"])
         self._draw(self._scan_prog, pos, attrs, rect, self._scan["size"])
+
+    def _scan_log(self):
+        """The entries logged since the last call (the log buffer is then emptied)."""
+        st = self._scan
+        self.ctx.memory_barrier()                      # the shader's writes before the read
+        n = int(np.frombuffer(st["log"].read(size=4), np.uint32)[0])
+        if n > st["cap"]:
+            raise RuntimeError(f"scan log overflow: {n} fragments passed in one batch, room for {st['cap']} "
+                               "(draw fewer sweeps per batch)")
+        if n == 0:
+            return CutLog.concat([])
+        e = np.frombuffer(st["log"].read(size=16 * n, offset=16), np.uint32).reshape(n, 4)
+        st["log"].clear(size=16)
+        return CutLog(e[:, 0].astype(np.int64), e[:, 1].view(np.int32).copy(), e[:, 2].view(np.float32).copy())
 
     def _scan_depth(self, r0, c0, rows, cols):
         raw = self._scan["fbo"].read(viewport=(c0, r0, cols, rows), components=1, attachment=-1,
@@ -196,4 +235,5 @@ class GLRenderer(Renderer):
             b_max[:] = np.where(bm == np.iinfo(np.int32).min, -np.inf, bm / B_SCALE)
         st["counts"].release()
         st["bmax"].release()
+        st["log"].release()
         return color

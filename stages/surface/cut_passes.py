@@ -25,56 +25,19 @@ from __future__ import annotations
 
 import numpy as np
 
-from stages.geometry.cutter import Cutter
-from stages.geometry.envelope import envelope_mesh
-from stages.geometry.passes import CONTINUE_DEG, PassGeometry, overlaps, window_xy_bounds
-from stages.geometry.sweeps import ordered_sweep_scene
-from stages.geometry.workpiece import Workpiece, workpiece_scene
-from stages.scan.tiles import PASSES_PER_DRAW, coarse_tolerance, scan_tiles, z_range
-
-N_BINS = 20              # bins of the position along a pass for the prediction point
+from stages.geometry.passes import CONTINUE_DEG, PassGeometry
+from stages.surface.ordered import N_BINS
 
 
-def cut_filter(pg: PassGeometry, shape: Cutter, wp: Workpiece, renderer,
-               px_per_mm: float, tol_mm: float | None = None):
-    """Claim-7 and claim-8 renders for every pass, as one ordered scan per tile.
+def cut_columns(pg: PassGeometry, counts: np.ndarray, b_max: np.ndarray, surface_px: np.ndarray,
+                surface_q: np.ndarray) -> dict:
+    """The ``cut_filter`` columns of every pass from its scan statistics (claim 7).
 
     Returns a dict of numpy columns: is_cutting, cut_px, pred_x/y/z_mm, pred_t,
     cut_max_contact_deg (largest contact angle over the pixels the pass cuts), surface_px and
     surface_max_contact_deg (pixels of the final surface the pass leaves, their largest q).
     """
     n = len(pg.pass_id)
-    tol = coarse_tolerance(px_per_mm) if tol_mm is None else tol_mm
-    mesh = envelope_mesh(shape, tol)
-    zlo, zhi = z_range(pg, wp, shape)
-    bounds = pg.sweep_bounds(shape)
-    # only passes whose sweep reaches the stock can cut; rapid moves (motion 0) never cut
-    reach = pg.motion != 0
-    reach &= overlaps(bounds[:, 0], bounds[:, 1], wp.bounds[:1], wp.bounds[1:])[:, 0]
-    reach &= bounds[:, 0, 2] <= wp.bounds[1, 2]
-    cand = np.nonzero(reach)[0]
-    counts = np.zeros((n, N_BINS), np.int64)
-    b_max = np.full(n, -np.inf)
-    surface_px = np.zeros(n, np.int64)
-    surface_q = np.full(n, -np.inf)
-    for view in scan_tiles(pg, shape, wp, px_per_mm, cand, zlo, zhi)[0]:
-        lo_w, hi_w = window_xy_bounds([view])
-        inside = cand[overlaps(lo_w, hi_w, bounds[cand, 0], bounds[cand, 1])[0]]
-
-        def batches(inside=inside):
-            for a in range(0, len(inside), PASSES_PER_DRAW):
-                k = inside[a:a + PASSES_PER_DRAW]
-                # sweeps are pushed back by the mesh tolerance: a pass must cut deeper than
-                # the polygonisation error into the stock to count (a repeat never counts)
-                yield ordered_sweep_scene(mesh, pg.p0[k], pg.p1[k], k, bias=tol)
-
-        res = renderer.scan(view, workpiece_scene(wp, [view], -2.0), batches(), n, N_BINS)
-        counts += res.counts
-        b_max = np.maximum(b_max, res.b_max)
-        fin = res.final
-        won = fin.id >= 0
-        surface_px += np.bincount(fin.id[won], minlength=n)
-        np.maximum.at(surface_q, fin.id[won], fin.b[won].astype(float))
     cut_px = counts.sum(1)
     out = dict(is_cutting=cut_px > 0, cut_px=cut_px, pred_x_mm=np.full(n, np.nan),
                pred_y_mm=np.full(n, np.nan), pred_z_mm=np.full(n, np.nan), pred_t=np.full(n, np.nan),
