@@ -10,7 +10,6 @@ the corrected program text and its reverse check (parse again), which are not pa
 """
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import time
@@ -18,24 +17,18 @@ import time
 import numpy as np
 import pyarrow as pa
 
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
-from stages.correct import correct_once  # noqa: E402
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from raster_job import options_and_program  # noqa: E402
+from stages.correction.rounds import correct_once  # noqa: E402
 from stages.geometry.cutter import Cutter  # noqa: E402
-from stages.nc_writer import write_program  # noqa: E402
-from stages.nc.writer import reverse_check
-from stages.parse import parse_program  # noqa: E402
-from stages.split import split_blocks  # noqa: E402
-from tests.ncprograms import raster_program  # noqa: E402
+from stages.nc.moves import split_blocks  # noqa: E402
+from stages.nc.reader import parse_program  # noqa: E402
+from stages.nc.writer import reverse_check  # noqa: E402
+from stages.nc.writer import write_program  # noqa: E402
 
 
 def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--blocks", type=int, default=300_000)
-    ap.add_argument("--repeat", type=int, default=3)
-    a = ap.parse_args()
-    data = raster_program(a.blocks)
-    params = {"split": {"chord_tol_mm": 0.001, "max_pass_mm": 5.0, "merge_max_mm": 0.5},
-              "machine": {"rapid_mm_min": 30000.0}, "tool": {"type": "ball", "diameter_mm": 6.0, "control_point": "tip"}}
+    a, data, params = options_and_program(__doc__.splitlines()[0])
     blocks, _ = parse_program(data, "bench.nc", "bench")
     passes = split_blocks(blocks, params)
     rng = np.random.default_rng(0)

@@ -6,26 +6,19 @@ coordinates omitted, arcs between rows), so it exercises the same paths as real 
 """
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import tempfile
 import time
 
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
-from stages.parse import parse_program  # noqa: E402
-from stages.split import split_blocks  # noqa: E402
-from tests.ncprograms import raster_program  # noqa: E402
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from raster_job import options_and_program  # noqa: E402
+from stages.nc.moves import split_blocks  # noqa: E402
+from stages.nc.reader import parse_program  # noqa: E402
 
 
 def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--blocks", type=int, default=300_000)
-    ap.add_argument("--repeat", type=int, default=3)
-    a = ap.parse_args()
-    data = raster_program(a.blocks)
-    params = {"split": {"chord_tol_mm": 0.001, "max_pass_mm": 5.0, "merge_max_mm": 0.5},
-              "machine": {"rapid_mm_min": 30000.0}, "tool": {"type": "ball", "diameter_mm": 6.0, "control_point": "tip"}}
+    a, data, params = options_and_program(__doc__.splitlines()[0])
     with tempfile.NamedTemporaryFile(suffix=".nc", delete=False) as f:
         f.write(data)
     best = float("inf")

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import sys
+from pathlib import Path
 
 import click
 
@@ -56,6 +57,23 @@ def status(workflow, out, as_json):
     click.echo(f"{'stage':>12}  {'done':>6}  {'pending':>7}  {'blocked':>7}")
     for r in rows:
         click.echo(f"{r['stage']:>12}  {r['done']:>6}  {r['pending']:>7}  {r['blocked']:>7}")
+
+
+@main.command("bench")
+@click.option("--passes", "n_passes", type=click.IntRange(min=100), default=30000, show_default=True,
+              help="Size of the generated finishing job.")
+@click.option("--workers", type=click.IntRange(1, 256), help="Workers of the LocalCluster (default: CPU count).")
+@click.option("--scheduler", help="Address of an existing Dask scheduler.")
+@click.option("--rerun", is_flag=True, help="Run again with nothing changed and report its seconds.")
+@click.option("--dir", "root", type=click.Path(file_okay=False), help="Where the jobs are made (default runs/bench).")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False), help="Write the figures to this file.")
+def bench_cmd(n_passes, workers, scheduler, rerun, root, json_path):
+    """Run the whole chain on a generated finishing job of N passes and print its figures."""
+    from pipeline import bench
+    res = bench.bench(n_passes, Path(root) if root else bench.default_root(), workers=workers, scheduler=scheduler,
+                      rerun=rerun)
+    click.echo(bench.write_json(res, json_path))
+    sys.exit(1 if res["failures"] else 0)
 
 
 @main.command("tool-profile")

@@ -13,6 +13,16 @@ TABLES = ("programs", "blocks", "passes", "cut_filter", "angle_prune", "generati
           "deflection", "errors", "corrected", "measurements", "gap_points", "gap_effects", "tool_wear")
 
 
+def endpoints() -> list[pa.Field]:
+    """A move's start and end (x0_mm … z1_mm), absolute, mm."""
+    return [pa.field(f"{a}{e}_mm", pa.float64(), nullable=False) for e in "01" for a in "xyz"]
+
+
+def surface_point() -> list[pa.Field]:
+    """A point on the part (x_mm, y_mm, z_mm) and the unit normal out of the material there."""
+    return [pa.field(c, pa.float64()) for c in ("x_mm", "y_mm", "z_mm", "nx", "ny", "nz")]
+
+
 class SchemaError(ValueError):
     """A table that does not match its declared schema."""
 

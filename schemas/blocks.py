@@ -1,5 +1,7 @@
 import pyarrow as pa
 
+from schemas import endpoints
+
 # One row per motion block after modal state is resolved (intermediate table between parse and
 # split; also what the corrected-program writer maps coordinates back onto).
 # motion: 0 rapid (G0), 1 linear (G1), 2 arc cw (G2), 3 arc ccw (G3), 4 dwell (G4).
@@ -11,12 +13,7 @@ SCHEMA = pa.schema([
     pa.field("n_number", pa.int32()),                    # the N word, when the block has one
     pa.field("motion", pa.int8(), nullable=False),
     pa.field("plane", pa.int16(), nullable=False),
-    pa.field("x0_mm", pa.float64(), nullable=False),
-    pa.field("y0_mm", pa.float64(), nullable=False),
-    pa.field("z0_mm", pa.float64(), nullable=False),
-    pa.field("x1_mm", pa.float64(), nullable=False),
-    pa.field("y1_mm", pa.float64(), nullable=False),
-    pa.field("z1_mm", pa.float64(), nullable=False),
+    *endpoints(),
     pa.field("cx_mm", pa.float64()),
     pa.field("cy_mm", pa.float64()),
     pa.field("cz_mm", pa.float64()),

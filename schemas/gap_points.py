@@ -1,5 +1,7 @@
 import pyarrow as pa
 
+from schemas import surface_point
+
 # DESIGN §6 `gap_points`: one row per measured point, with the features of the diagnosis (stages/gap/tables.py).
 SCHEMA = pa.schema([
     pa.field('point_id', pa.int64()),
@@ -8,12 +10,7 @@ SCHEMA = pa.schema([
     pa.field('predicted_um', pa.float64()),
     pa.field('measured_um', pa.float64()),
     pa.field('residual_um', pa.float64()),
-    pa.field('x_mm', pa.float64()),
-    pa.field('y_mm', pa.float64()),
-    pa.field('z_mm', pa.float64()),
-    pa.field('nx', pa.float64()),
-    pa.field('ny', pa.float64()),
-    pa.field('nz', pa.float64()),
+    *surface_point(),
     pa.field('q_deg', pa.float64()),               # contact angle
     pa.field('phi_deg', pa.float64()),             # rotation angle from the feed direction
     pa.field('t_s', pa.float64()),                 # machining time at the point

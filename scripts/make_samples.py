@@ -4,7 +4,7 @@ Run from the project root::
 
     python scripts/make_samples.py [--source PATH_TO/ktoolcav.stl] [--out data_samples]
 
-Needs ``opencamlib`` (``pip install -e .[samples]``) besides the project's own dependencies.
+Uses ``opencamlib`` (one of the project's dependencies) for the drop-cutter toolpaths.
 It takes well under a minute on two cores.
 
 What it writes (all lengths mm, machine frame: tool axis +Z; the part's min corner at
@@ -293,8 +293,8 @@ def frf_table() -> np.ndarray:
 README = """# Sample data
 
 Small, real-shaped inputs for the pipeline (`workflows/mould.yaml`). Everything here is made by
-`python scripts/make_samples.py` (deterministic; needs `pip install -e .[samples]` for
-`opencamlib`) from the OpenCAMLib reference mesh `ktoolcav.stl`.
+`python scripts/make_samples.py` (deterministic; `opencamlib` makes the toolpaths) from the
+OpenCAMLib reference mesh `ktoolcav.stl`.
 
 ## Frame and units
 

@@ -270,10 +270,8 @@ class NCWriter:
         self.n += self.n_step
         self.lines.append(f"N{self.n} {text}")
 
-    def move(self, g: str, x=None, y=None, z=None, feed=None, extra: str = "", force=False):
-        words = []
-        if g != self.motion or force:
-            words.append(g)
+    def _coords(self, words: list, x, y, z) -> bool:
+        """Append the coordinates that change (modal); whether any did."""
         changed = False
         for ax, v in (("X", x), ("Y", y), ("Z", z)):
             if v is None:
@@ -283,39 +281,35 @@ class NCWriter:
                 words.append(ax + s)
                 self.pos[ax] = s
                 changed = True
-        if extra:
-            words.append(extra)
-            changed = True
-        if not changed:
-            return False
-        if feed is not None and g != "G0" and feed != self.feed:
-            words.append(f"F{feed:g}")
-            self.feed = feed
-        self.motion = g
-        self.block(" ".join(words))
-        self.moves[g] += 1
-        return True
+        return changed
 
-    def arc(self, g: str, x, y, z=None, i=None, j=None, k=None, r=None, feed=None, plane=""):
-        """Circular move; I J K incremental centre or R. ``plane`` prefixes e.g. 'G18'."""
-        words = [plane] if plane else []
-        words.append(g)
-        for ax, v in (("X", x), ("Y", y), ("Z", z)):
-            if v is None:
-                continue
-            s = self.num(v)
-            if s != self.pos[ax]:
-                words.append(ax + s)
-                self.pos[ax] = s
-        for ax, v in (("I", i), ("J", j), ("K", k), ("R", r)):
-            if v is not None:
-                words.append(ax + self.num(v))
+    def _emit(self, g: str, words: list, feed) -> None:
         if feed is not None and feed != self.feed:
             words.append(f"F{feed:g}")
             self.feed = feed
         self.motion = g
         self.block(" ".join(words))
         self.moves[g] += 1
+
+    def move(self, g: str, x=None, y=None, z=None, feed=None, extra: str = "", force=False):
+        words = [g] if g != self.motion or force else []
+        changed = self._coords(words, x, y, z)
+        if extra:
+            words.append(extra)
+            changed = True
+        if not changed:
+            return False
+        self._emit(g, words, None if g == "G0" else feed)
+        return True
+
+    def arc(self, g: str, x, y, z=None, i=None, j=None, k=None, r=None, feed=None, plane=""):
+        """Circular move; I J K incremental centre or R. ``plane`` prefixes e.g. 'G18'."""
+        words = ([plane] if plane else []) + [g]
+        self._coords(words, x, y, z)
+        for ax, v in (("I", i), ("J", j), ("K", k), ("R", r)):
+            if v is not None:
+                words.append(ax + self.num(v))
+        self._emit(g, words, feed)
 
     def text(self) -> str:
         return "\n".join(self.lines) + "\n"

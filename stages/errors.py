@@ -11,22 +11,9 @@ import pyarrow as pa
 
 from stages.cutting.forces import DEFAULT_N_ROT
 from stages.cutting.surface_error import (
-    contact_height_mm,
-    deepest_passage,
-    machining_error,
-    read_profile,
-    second_contact_error,
-    tip_z_nearest,
-)
+    contact_height_mm, deepest_passage, machining_error, read_profile, second_contact_error, tip_z_nearest)
 from stages.geometry.cutter import Cutter
-from stages.tables import (
-    col,
-    list_values,
-    match_passes,
-    pick_entry,
-    program_tool_number,
-    xyz,
-)
+from stages.tables import col, list_values, match_passes, pick_entry, program_tool_number, xyz
 
 NAME = "errors"
 VERSION = "6"

@@ -14,20 +14,9 @@ import pyarrow as pa
 
 from stages import InputError
 from stages.cutting.forces import (
-    COEFF_NAMES,
-    DEFAULT_N_ROT,
-    cutting_forces_packed,
-    feed_per_tooth_mm,
-    rotation_grid_deg,
-)
+    COEFF_NAMES, DEFAULT_N_ROT, cutting_forces_packed, feed_per_tooth_mm, rotation_grid_deg)
 from stages.geometry.cutter import Cutter
-from stages.tables import (
-    binary_rows,
-    list_column,
-    match_passes,
-    pick_entry,
-    program_tool_number,
-)
+from stages.tables import binary_rows, list_column, match_passes, pick_entry, program_tool_number
 
 NAME = "forces"
 VERSION = "2"

@@ -287,7 +287,7 @@ class CylinderMachine:
                 p = c + d
                 rho = np.hypot(p[:, 0], p[:, 2])
                 nx = p[:, 0] / rho
-                load = self._load(p)
+                load = self.load(p)
                 d = np.zeros_like(c)
                 d[:, 0] = load * (self.gain * nx - self.side * feed[:, 1])
                 d[:, 1] = load * self.side * feed[:, 0]

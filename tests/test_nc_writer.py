@@ -84,14 +84,25 @@ def test_modal_omission_incremental_and_inch():
     assert rep["ok"], rep
 
 
+def _arcs(number: bytes, *moves: bytes):
+    """A program from (10, 0, 0) through ``moves`` in G17: its text, blocks and passes."""
+    text = b"\n".join([b"%", number, b"G90 G21 G17", b"T1 M6", b"S1000 M3", b"G0 X10.000 Y0.000 Z0.000",
+                       b"G1 X10.000 Y0.000 F500", *moves, b"M30", b"%", b""])
+    blocks, _ = parse_program(text, "t", "p")
+    return text, blocks, split_blocks(blocks, SPLIT)
+
+
+def _length(p) -> float:
+    """Path length of a passes table."""
+    return float(np.sum(np.sqrt(sum((p.column(a + "1_mm").to_numpy() - p.column(a + "0_mm").to_numpy()) ** 2
+                                    for a in "xyz"))))
+
+
 def test_arc_refit_stays_a_circle():
     # a G17 arc and an R arc, radial errors on their chords: a uniform radial error must grow the
     # radius by that error (concentric), and the written arcs must pass the parser's radius check
-    text = b"\n".join([b"%", b"O0008", b"G90 G21 G17", b"T1 M6", b"S1000 M3", b"G0 X10.000 Y0.000 Z0.000",
-                       b"G1 X10.000 Y0.000 F500", b"G3 X0.000 Y10.000 I-10.000 J0.000",
-                       b"G3 X-10.000 Y0.000 R10.000", b"G1 X-10.000 Y-5.000", b"M30", b"%", b""])
-    blocks, _ = parse_program(text, "t", "p")
-    passes = split_blocks(blocks, SPLIT)
+    text, blocks, passes = _arcs(b"O0008", b"G3 X0.000 Y10.000 I-10.000 J0.000", b"G3 X-10.000 Y0.000 R10.000",
+                                 b"G1 X-10.000 Y-5.000")
     mid = (np.stack([passes.column(c).to_numpy() for c in ("x0_mm", "y0_mm")], 1)
            + np.stack([passes.column(c).to_numpy() for c in ("x1_mm", "y1_mm")], 1)) / 2
     radial = mid / np.linalg.norm(mid, axis=1)[:, None]
@@ -146,10 +157,7 @@ def test_random_arc_moves_stay_consistent():
 
 
 def test_ln_arcs_become_chords_on_the_refitted_circle():
-    text = b"\n".join([b"%", b"O0011", b"G90 G21 G17", b"T1 M6", b"S1000 M3", b"G0 X10.000 Y0.000 Z0.000",
-                       b"G1 X10.000 Y0.000 F500", b"G3 X0.000 Y10.000 I-10.000 J0.000", b"M30", b"%", b""])
-    blocks, _ = parse_program(text, "t", "p")
-    passes = split_blocks(blocks, SPLIT)
+    text, blocks, passes = _arcs(b"O0011", b"G3 X0.000 Y10.000 I-10.000 J0.000")
     mid = (np.stack([passes.column(c).to_numpy() for c in ("x0_mm", "y0_mm")], 1)
            + np.stack([passes.column(c).to_numpy() for c in ("x1_mm", "y1_mm")], 1)) / 2
     radial = mid / np.linalg.norm(mid, axis=1)[:, None]
@@ -235,11 +243,8 @@ def test_incremental_program_random_moves_reverse_check():
 def test_full_circle_and_long_r_arc_stay_what_they_are():
     # a full circle (I J only) and a 270° R arc (negative R): after random moves the circle is still
     # full and the R arc still spans more than 180° with its refitted centre
-    text = b"\n".join([b"%", b"O0013", b"G90 G21 G17", b"T1 M6", b"S1000 M3", b"G0 X10.000 Y0.000 Z0.000",
-                       b"G1 X10.000 Y0.000 F500", b"G3 I-10.000 J0.000", b"G1 X10.000 Y-1.000",
-                       b"G2 X0.000 Y-11.000 R-10.000", b"G1 X0.000 Y-12.000", b"M30", b"%", b""])
-    blocks, _ = parse_program(text, "t", "p")
-    passes = split_blocks(blocks, SPLIT)
+    text, blocks, passes = _arcs(b"O0013", b"G3 I-10.000 J0.000", b"G1 X10.000 Y-1.000", b"G2 X0.000 Y-11.000 R-10.000",
+                                 b"G1 X0.000 Y-12.000")
     for seed in range(5):
         c = correct_once(blocks, passes, random_errors(passes, 20 + seed, 20.0), {"correct": {}})
         out = write_program(text, blocks, c)
@@ -250,27 +255,20 @@ def test_full_circle_and_long_r_arc_stay_what_they_are():
         assert [ln for ln in body if ln.startswith(b"G2 ")][0].split(b"R")[1].startswith(b"-")
         nb, _ = parse_program(out, "t", "p")
         new_passes = split_blocks(nb, SPLIT)
-        length = lambda p: float(np.sum(np.sqrt(sum((p.column(a + "1_mm").to_numpy() - p.column(a + "0_mm").to_numpy()) ** 2  # noqa: E731
-                                                    for a in "xyz"))))
-        assert abs(length(new_passes) - length(passes)) < 0.5             # no arc collapsed (−63 mm) or flipped
+        assert abs(_length(new_passes) - _length(passes)) < 0.5             # no arc collapsed (−63 mm) or flipped
 
 
 def test_near_full_arc_does_not_flip():
     # a 359.94° arc: its end lies 10 µm from its start; moves of that size must not turn it into
     # a sliver (the splitter would read a 0.06° arc)
-    text = b"\n".join([b"%", b"O0014", b"G90 G21 G17", b"T1 M6", b"S1000 M3", b"G0 X10.000 Y0.000 Z0.000",
-                       b"G1 X10.000 Y0.000 F500", b"G3 X9.999 Y-0.010 I-10.000 J0.000",
-                       b"G3 X0.000 Y-10.000 I-9.999 J0.010", b"G1 X0.000 Y-12.000", b"M30", b"%", b""])
-    blocks, _ = parse_program(text, "t", "p")
-    passes = split_blocks(blocks, SPLIT)
-    length = lambda p: float(np.sum(np.sqrt(sum((p.column(a + "1_mm").to_numpy() - p.column(a + "0_mm").to_numpy()) ** 2  # noqa: E731
-                                                for a in "xyz"))))
+    text, blocks, passes = _arcs(b"O0014", b"G3 X9.999 Y-0.010 I-10.000 J0.000", b"G3 X0.000 Y-10.000 I-9.999 J0.010",
+                                 b"G1 X0.000 Y-12.000")
     for seed in range(8):
         c = correct_once(blocks, passes, random_errors(passes, 40 + seed, 25.0), {"correct": {}})
         out = write_program(text, blocks, c)
         assert reverse_check(out, blocks, c)["ok"]
         nb, _ = parse_program(out, "t", "p")
-        assert abs(length(split_blocks(nb, SPLIT)) - length(passes)) < 0.5
+        assert abs(_length(split_blocks(nb, SPLIT)) - _length(passes)) < 0.5
 
 
 _VIA_PROGRAM = b"\n".join([

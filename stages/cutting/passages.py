@@ -24,14 +24,13 @@ segment is a convex function of the position along it; it is minimised by golden
 """
 from __future__ import annotations
 
-import math
 
 import numpy as np
 
+from stages.geometry.clearance import convex_argmin
 from stages.geometry.cutter import Cutter
 
 GOLDEN_ITERS = 48          # (√5 − 1)/2 ^ 48 ≈ 1e-10 of the move length
-_INV_PHI = (math.sqrt(5.0) - 1.0) / 2.0
 
 
 def sweep_distance(points: np.ndarray, tip0: np.ndarray, tip1: np.ndarray, cutter: Cutter):
@@ -53,23 +52,7 @@ def sweep_distance(points: np.ndarray, tip0: np.ndarray, tip1: np.ndarray, cutte
     def f(t):
         return cutter.distance(points - tip0 - t[:, None] * seg)[0]
 
-    lo, hi = np.zeros(len(points)), np.ones(len(points))
-    m1, m2 = hi - _INV_PHI * (hi - lo), lo + _INV_PHI * (hi - lo)
-    f1, f2 = f(m1), f(m2)
-    for _ in range(GOLDEN_ITERS):
-        left = f1 <= f2                                  # the minimum lies in [lo, m2]
-        hi = np.where(left, m2, hi)
-        lo = np.where(left, lo, m1)
-        n1 = np.where(left, hi - _INV_PHI * (hi - lo), m2)
-        n2 = np.where(left, m1, lo + _INV_PHI * (hi - lo))
-        fn = f(np.where(left, n1, n2))
-        f1, f2 = np.where(left, fn, f2), np.where(left, f1, fn)
-        m1, m2 = n1, n2
-    t = 0.5 * (lo + hi)
-    # the ends: a convex function on [0, 1] may be smallest there
-    cand = np.stack([t, np.zeros_like(t), np.ones_like(t)], 1)
-    dists = np.stack([f(cand[:, k]) for k in range(3)], 1)
-    t = cand[np.arange(len(t)), np.argmin(dists, axis=1)]
+    t = convex_argmin(f, len(points), GOLDEN_ITERS)
     dist, q, height, normal = cutter.distance(points - tip0 - t[:, None] * seg)
     return dist, t, q, height, normal
 

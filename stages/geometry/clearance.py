@@ -54,20 +54,14 @@ def _in_swept_cylinder(p, c0, c1, radius, height, eps):
     return reach & (p[:, 2] >= zmin + eps) & (p[:, 2] <= zmax + height)
 
 
-def _disk_sweep_distance(p, c0, c1, a):
-    """Distance from points to the horizontal disk of radius ``a`` swept c0→c1 (golden section)."""
-    seg = c1 - c0
-
-    def f(t):
-        c = c0 + t[:, None] * seg
-        rho = np.hypot(p[:, 0] - c[:, 0], p[:, 1] - c[:, 1])
-        return np.hypot(np.maximum(rho - a, 0.0), p[:, 2] - c[:, 2])
-
-    lo, hi = np.zeros(len(p)), np.ones(len(p))
+def convex_argmin(f, n: int, iters: int = GOLDEN_ITERS) -> np.ndarray:
+    """The t in [0, 1] that minimises each of ``n`` convex functions ``f(t)`` (vectorised over the
+    n: ``f`` maps (n,) to (n,)), by golden section, the ends included."""
+    lo, hi = np.zeros(n), np.ones(n)
     m1, m2 = hi - _INV_PHI, lo + _INV_PHI
     f1, f2 = f(m1), f(m2)
-    for _ in range(GOLDEN_ITERS):
-        left = f1 <= f2
+    for _ in range(iters):
+        left = f1 <= f2                                  # the minimum lies in [lo, m2]
         hi = np.where(left, m2, hi)
         lo = np.where(left, lo, m1)
         n1 = np.where(left, hi - _INV_PHI * (hi - lo), m2)
@@ -75,7 +69,21 @@ def _disk_sweep_distance(p, c0, c1, a):
         fn = f(np.where(left, n1, n2))
         f1, f2 = np.where(left, fn, f2), np.where(left, f1, fn)
         m1, m2 = n1, n2
-    return np.minimum(np.minimum(f(0.5 * (lo + hi)), f(np.zeros(len(p)))), f(np.ones(len(p))))
+    cand = np.stack([0.5 * (lo + hi), np.zeros(n), np.ones(n)], 1)
+    values = np.stack([f(cand[:, k]) for k in range(3)], 1)
+    return cand[np.arange(n), np.argmin(values, axis=1)]
+
+
+def _disk_sweep_distance(p, c0, c1, a):
+    """Distance from points to the horizontal disk of radius ``a`` swept c0→c1."""
+    seg = c1 - c0
+
+    def f(t):
+        c = c0 + t[:, None] * seg
+        rho = np.hypot(p[:, 0] - c[:, 0], p[:, 1] - c[:, 1])
+        return np.hypot(np.maximum(rho - a, 0.0), p[:, 2] - c[:, 2])
+
+    return f(convex_argmin(f, len(p)))
 
 
 def inside_sweep(points, tip0, tip1, cutter: Cutter, eps: float = 1e-4) -> np.ndarray:
