@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 
 import numpy as np
 
@@ -20,6 +20,11 @@ class Workpiece:
     tris: np.ndarray      # (n, 3, 3)
     normals: np.ndarray   # (n, 3)
     bounds: np.ndarray    # (2, 3)
+
+    @cached_property
+    def top(self) -> "StockTop":
+        """The stock's top at any xy (:class:`StockTop`), built on first use."""
+        return StockTop(self)
 
 
 def box_workpiece(box) -> Workpiece:
@@ -42,7 +47,7 @@ class StockTop:
     (the stock as 3-axis machining sees it; a vertical face has no top and a wall is where the top
     drops). The triangles are binned by their xy bounds into square cells of ``cell_mm``."""
 
-    def __init__(self, wp: Workpiece, cell_mm: float = 1.0):
+    def __init__(self, wp: Workpiece, cell_mm: float = 0.5):
         t = wp.tris
         a, b = t[:, 1, :2] - t[:, 0, :2], t[:, 2, :2] - t[:, 0, :2]
         det = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
@@ -56,7 +61,20 @@ class StockTop:
         nx, ny = c1[:, 0] - c0[:, 0] + 1, c1[:, 1] - c0[:, 1] + 1
         k = np.repeat(np.arange(len(c0)), nx * ny)
         off = np.arange(k.size) - np.repeat(np.cumsum(nx * ny) - nx * ny, nx * ny)
-        cells = (c0[k, 0] + off % nx[k]) * self._shape[1] + c0[k, 1] + off // nx[k]
+        cx, cy = c0[k, 0] + off % nx[k], c0[k, 1] + off // nx[k]
+        # keep the cells the triangle itself covers, not only its bounds (a long diagonal sliver's
+        # bounds hold many cells): no edge of it separates the cell from it
+        xy = t[keep, :, :2][k]
+        centre = self._lo + (np.stack([cx, cy], 1) + 0.5) * cell_mm
+        meets = np.ones(len(k), bool)
+        for e in range(3):
+            d = xy[:, (e + 1) % 3] - xy[:, e]
+            n = np.stack([-d[:, 1], d[:, 0]], 1)
+            proj = np.einsum("kvi,ki->kv", xy, n)
+            c = np.einsum("ki,ki->k", centre, n)
+            half = 0.5 * cell_mm * (np.abs(n[:, 0]) + np.abs(n[:, 1]))
+            meets &= (c + half >= proj.min(1)) & (c - half <= proj.max(1))
+        k, cells = k[meets], (cx * self._shape[1] + cy)[meets]
         order = np.argsort(cells, kind="stable")
         self._cells, self._tri = cells[order], k[order]
 
@@ -175,7 +193,15 @@ def load_workpiece(stock) -> Workpiece:
         if "box" not in stock:
             raise InputError(f"stock: dict must have key 'box', got {sorted(stock)}")
         return box_workpiece(stock["box"])
-    m = _read_mesh(stock, "stock model")
+    path = os.path.abspath(os.fspath(stock))
+    if not os.path.exists(path):
+        raise InputError(f"{path}: stock model not found")
+    return _workpiece_cached(path, os.path.getmtime(path))
+
+
+@lru_cache(maxsize=4)
+def _workpiece_cached(path: str, mtime: float) -> Workpiece:
+    m = _read_mesh(path, "stock model")
     if m.is_volume and m.volume < 0:
         m.invert()
     return _from_trimesh(m)

@@ -211,11 +211,11 @@ def engagement(ts: TileScan, pg: PassGeometry, cutter: Cutter, pred: np.ndarray,
         b = np.mod(b_lo[r2] + off % nb[r2], n_phi)
         who = row[r2]
         if stock_top is not None:                         # claim 6: the steep side in closed form
-            grid = np.zeros((len(k), int(lev.max(initial=0)) + 1, n_phi), bool)
-            grid[who, lev, b] = True
-            refine_steep(grid, k, tips[a:a + len(k)], feed[k], snap[a:a + len(k)], joint[a:a + len(k)], pg,
-                         cutter, dz, view, ts.stock_z, stock_top, cuts, margin)
-            who, lev, b = np.nonzero(grid)
+            top_lev = int(lev.max(initial=0)) + 1
+            u = np.unique((who * top_lev + lev) * n_phi + b)
+            who, lev, b = u // n_phi // top_lev, u // n_phi % top_lev, u % n_phi
+            who, lev, b = refine_steep(who, lev, b, n_phi, tips[a:a + len(k)], feed[k], snap[a:a + len(k)],
+                                       joint[a:a + len(k)], pg, cutter, dz, view, ts.stock_z, stock_top, cuts, margin)
         n_lev = np.ones(len(k), np.int64)
         np.maximum.at(n_lev, who, lev + 1)
         n_z[a:a + len(k)] = n_lev

@@ -7,7 +7,7 @@ import numpy as np
 from stages.geometry.cutter import Cutter
 from stages.geometry.envelope import envelope_mesh
 from stages.geometry.passes import PassGeometry
-from stages.geometry.workpiece import StockTop, Workpiece
+from stages.geometry.workpiece import Workpiece
 from stages.surface.cut_passes import cut_columns
 from stages.surface.engagement import DZ_PER_RADIUS, N_PHI, TRAIL_TURN_DEG, engagement, snapshot_from
 from stages.surface.ordered import scan_tile, surface_stats
@@ -40,7 +40,6 @@ def scan_program(pg: PassGeometry, cutter: Cutter, wp: Workpiece, renderer, px_p
     (one row per predicted pass), ``n_z`` and ``masks`` (their engagement grids, packed).
     """
     mesh = envelope_mesh(cutter, fine_tolerance(px_per_mm))
-    top = StockTop(wp)
     dz = cutter.radius_mm * DZ_PER_RADIUS
     out = {"passes": [], "cut_filter": [], "angle_prune": [], "predicted": [], "generating": [], "n_z": [],
            "masks": []}
@@ -65,7 +64,7 @@ def scan_program(pg: PassGeometry, cutter: Cutter, wp: Workpiece, renderer, px_p
         s_tip = pg.s0[pred] + np.linalg.norm(tips - pg.p0[pred], axis=1)
         gen = generating_points(ts, pg, cutter, pred, tips, mesh.tol_mm, design, steep_deg)
         snap = snapshot_from(pg, pred, s_tip, cutter.radius_mm, TRAIL_TURN_DEG)
-        n_z, masks = engagement(ts, pg, cutter, pred, tips, snap, dz, N_PHI, margin=mesh.tol_mm, stock_top=top)
+        n_z, masks = engagement(ts, pg, cutter, pred, tips, snap, dz, N_PHI, margin=mesh.tol_mm, stock_top=wp.top)
         for key, v in (("passes", k), ("cut_filter", cf), ("angle_prune", ap), ("predicted", pred),
                        ("generating", gen), ("n_z", n_z), ("masks", masks)):
             out[key].append(v)

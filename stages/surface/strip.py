@@ -250,12 +250,13 @@ def owners_around(ids: np.ndarray, view, xy: np.ndarray, half: int = 2):
     d = np.arange(-half, half + 1)
     ii = np.clip(ci[:, None, None] + d[None, None, :], 0, w - 1)
     jj = np.clip(cj[:, None, None] + d[None, :, None], 0, h - 1)
-    own = ids[jj, ii].reshape(len(xy), -1)
+    own = ids[jj, ii].reshape(len(xy), -1).astype(np.int64)
     point = np.repeat(np.arange(len(xy)), own.shape[1])
     own = own.reshape(-1)
     ok = own >= 0
-    pairs = np.unique(np.stack([point[ok], own[ok]], 1), axis=0)
-    return pairs[:, 0], pairs[:, 1]
+    n = int(own.max(initial=0)) + 1
+    pair = np.unique(point[ok] * n + own[ok])
+    return pair // n, pair % n
 
 
 def _on_design(design, P, alive):
