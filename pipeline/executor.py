@@ -27,6 +27,12 @@ from stages import InputError
 
 LOG_EVERY_S = 10.0
 
+# Environment of the LocalCluster's worker processes: Dask's defaults without
+# MALLOC_TRIM_THRESHOLD_. Fixing that threshold also fixes glibc's mmap threshold, so every large
+# numpy temporary is a fresh mmap with its page faults: the scan stage ran 1.45x slower in a worker
+# than in a plain process (28.1 s against 19.4 s on one tile of the 300,000-pass bench).
+WORKER_ENV = {"OMP_NUM_THREADS": 1, "MKL_NUM_THREADS": 1, "OPENBLAS_NUM_THREADS": 1}
+
 
 def execute_partition(stage_module: str, cache_root: str, key: str, inputs: dict, params: dict,
                       shard: Optional[tuple] = None) -> dict:
@@ -81,10 +87,12 @@ class Executor:
         if self.scheduler:
             self.client = Client(self.scheduler, timeout="30s")
         else:
+            import dask
             n = self.workers or os.cpu_count() or 1
             # ":0" takes a free port: another Dask on this machine costs no warning
-            cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                   dashboard_address=":0", silence_logs=logging.CRITICAL)
+            with dask.config.set({"distributed.nanny.pre-spawn-environ": WORKER_ENV}):
+                cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                       dashboard_address=":0", silence_logs=logging.CRITICAL)
             self.client = Client(cluster)
         self.dashboard = self.client.dashboard_link
         if self.progress and (self.scheduler or self.workers):

@@ -25,6 +25,17 @@ OUTPUTS = ("forces",)
 PARAMS = ("tool", "material")
 
 N_ROT = DEFAULT_N_ROT
+ROWS_PER_TASK = 4000     # predicted passes per task: a large program's forces spread over the workers
+
+
+def shards(rows: dict, params: dict) -> int:
+    """Tasks a program's forces are computed in, from its number of predicted passes."""
+    return int(min(64, max(1, -(-int(rows.get("engagement", 0)) // ROWS_PER_TASK))))
+
+
+def combine_shards(parts: list[dict]) -> dict:
+    """Shard i holds the i-th contiguous block of the engagement rows: joined in that order."""
+    return {"forces": pa.concat_tables([p["forces"] for p in parts])}
 
 
 def _empty():
@@ -32,8 +43,12 @@ def _empty():
     return SCHEMA.empty_table()
 
 
-def run(inputs: dict, params: dict) -> dict:
+def run(inputs: dict, params: dict, shard: tuple[int, int] | None = None) -> dict:
     passes, engagement = inputs["passes"], inputs["engagement"]
+    if shard is not None:
+        i, n = shard
+        a, b = engagement.num_rows * i // n, engagement.num_rows * (i + 1) // n
+        engagement = engagement.slice(a, b - a)
     if engagement.num_rows == 0:
         return {"forces": _empty()}
     t_no = program_tool_number(passes)

@@ -66,3 +66,22 @@ def test_scan_in_shards_equals_it_in_one_piece(tmp_path):
         one = whole[name].to_pandas()
         assert np.all(np.diff(sharded.pass_id) > 0) and len(sharded) >= (10 if name == "cut_filter" else 1)
         pd.testing.assert_frame_equal(sharded, one, check_dtype=False)
+
+
+def test_forces_in_shards_equal_them_in_one_piece(tmp_path):
+    """forces.run on contiguous blocks of the engagement rows, joined, against one run on all."""
+    from stages import forces
+    wf = dict(WF, until="forces", stock={"box": [0, 0, -10, 20, 20, 0]},
+              render={"backend": "auto", "px_per_mm": 50}, prune={"min_contact_deg": 0}, split={"max_pass_mm": 1.0})
+    (tmp_path / "nc").mkdir()
+    (tmp_path / "nc" / "box.nc").write_bytes(BOX_PROGRAM)
+    (tmp_path / "wf.yaml").write_text(yaml.safe_dump(wf))
+    code, out = run_cli("run", str(tmp_path / "wf.yaml"), "--workers", "1", "-q")
+    assert code == 0, out
+    read = {n: pq.read_table(tmp_path / "out" / "tables" / n / "box.parquet") for n in ("passes", "generating", "engagement")}
+    params = {"tool": wf["tool"], "material": wf["material"]}
+    n = 3
+    assert read["engagement"].num_rows >= n
+    joined = forces.combine_shards([forces.run(read, params, shard=(i, n)) for i in range(n)])["forces"]
+    pd.testing.assert_frame_equal(joined.to_pandas(), forces.run(read, params)["forces"].to_pandas())
+    assert forces.shards({"engagement": 2 * forces.ROWS_PER_TASK + 1}, params) == 3

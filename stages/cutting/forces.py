@@ -192,47 +192,23 @@ def chip_thickness_mm(fz_mm: float, cos_phi, sin_kappa, rho_mm=None, ramp_deg: f
     return np.maximum(best, 0.0)
 
 
-def edge_force_components(cos_phi, sin_phi, kappa_rad, ds_mm, h_mm, coeffs: dict):
-    """Feed-frame (Fx, Fy, Fz) on the tool of micro-edges with chip h (0 = not cutting).
+def edge_force_basis(cos_phi, sin_phi, kappa_rad, coeffs: dict):
+    """Feed-frame force on the tool per unit chip area and per unit edge length of micro-edges.
 
-    Returns an array with a trailing axis of 3.
+    A micro-edge of length ds with chip h (cutting where h > 1e-12, thinner is a rounding remnant
+    at ψ = 0 or 180°) carries ``h·ds·cut + ds·edge``, tangential, radial and axial forces
+    (kt, kr, ka)·(h·ds) + (kte, kre, kae)·ds turned into x (feed), y, z. Returns (cut, edge),
+    each with the shape of ``cos_phi`` and a trailing axis of 3.
     """
-    cutting = h_mm > 1e-12        # a chip thinner than this is a rounding remnant at ψ = 0 or 180°
-    edge = ds_mm * cutting
-    hdb = h_mm * ds_mm
-    ft = coeffs["ktc"] * hdb + coeffs.get("kte", 0.0) * edge
-    fr = coeffs["krc"] * hdb + coeffs.get("kre", 0.0) * edge
-    fa = coeffs["kac"] * hdb + coeffs.get("kae", 0.0) * edge
     sk, ck = np.sin(kappa_rad), np.cos(kappa_rad)
-    fx = -fr * sk * cos_phi - ft * sin_phi - fa * ck * cos_phi
-    fy = -fr * sk * sin_phi + ft * cos_phi - fa * ck * sin_phi
-    fz = fr * ck - fa * sk
-    return np.stack([fx, fy, fz], axis=-1)
 
+    def basis(kt, kr, ka):
+        return np.stack([-kr * sk * cos_phi - kt * sin_phi - ka * ck * cos_phi,
+                         -kr * sk * sin_phi + kt * cos_phi - ka * ck * sin_phi,
+                         np.broadcast_to(kr * ck - ka * sk, cos_phi.shape)], axis=-1)
 
-def force_weights(grid: EdgeGrid, n_phi: int, fz_mm: float, coeffs: dict, rotation_deg,
-                  runout_um: float = 0.0, ramp_deg: float = 0.0):
-    """Force of each micro-edge if its cell is engaged, and the cell it reads.
-
-    Returns
-    -------
-    weights : ndarray (n_rot, flutes·n_z, 3)
-        Feed-frame force on the tool (N) of flute j, level k at spindle angle θ_i, to be counted
-        when the engagement cell ``cells[i, j·n_z + k]`` is True.
-    cells : ndarray of int (n_rot, flutes·n_z)
-        Flat index k·n_phi + (bin of φ) into the raveled engagement grid.
-    """
-    phi = flute_positions_deg(grid, rotation_deg)                   # (n_rot, N, n_z)
-    phi_rad = np.radians(phi)
-    cos_phi, sin_phi = np.cos(phi_rad), np.sin(phi_rad)
-    j = np.arange(grid.flutes)
-    rho = (float(runout_um) * 1e-3) * np.cos(2 * np.pi * j / grid.flutes)
-    h = chip_thickness_mm(fz_mm, cos_phi, np.sin(grid.kappa_rad), rho, ramp_deg)
-    f = edge_force_components(cos_phi, sin_phi, grid.kappa_rad, grid.ds_mm, h, coeffs)
-    bins = np.minimum((phi * (n_phi / 360.0)).astype(np.int64), n_phi - 1)
-    cells = np.arange(len(grid.z_mm))[None, None, :] * n_phi + bins
-    n_rot = phi.shape[0]
-    return f.reshape(n_rot, -1, 3), cells.reshape(n_rot, -1)
+    g = {k: float(coeffs.get(k, 0.0) or 0.0) for k in COEFF_NAMES}
+    return basis(g["ktc"], g["krc"], g["kac"]), basis(g["kte"], g["kre"], g["kae"])
 
 
 def _gather_matmul(packed: np.ndarray, cells: np.ndarray, weights: np.ndarray, out: np.ndarray,
@@ -300,26 +276,11 @@ RAMP_STEP_DEG = 0.5     # passes are grouped by ramp angle to this step (h chang
 def cutting_forces_packed(packed: np.ndarray, n_z: int, n_phi: int, dz_mm: float, fz_mm, cutter: Cutter,
                           coeffs: dict, rotation_deg=None, ramp_deg=0.0) -> np.ndarray:
     """``cutting_forces`` on grids given as packed bits (P, ceil(n_z·n_phi/8)) uint8, the form the
-    ``engagement`` table stores; memory stays O(chunk), whatever P and the grid size. Passes are
-    grouped by ramp angle (``RAMP_STEP_DEG``): the weights depend on it, not on the pass."""
-    packed = np.asarray(packed, dtype=np.uint8)
-    n_pass = packed.shape[0]
-    ramp = np.round(np.broadcast_to(np.asarray(ramp_deg, dtype=float), (n_pass,)) / RAMP_STEP_DEG)
-    if n_pass == 0 or np.all(ramp == ramp[0]):
-        return _forces_one_ramp(packed, n_z, n_phi, dz_mm, fz_mm, cutter, coeffs, rotation_deg,
-                                float(ramp[0]) * RAMP_STEP_DEG if n_pass else 0.0)
-    fz = np.broadcast_to(np.asarray(fz_mm, dtype=float), (n_pass,))
-    theta = rotation_grid_deg() if rotation_deg is None else np.asarray(rotation_deg, dtype=float)
-    comp = np.zeros((3, n_pass, len(theta)))
-    uniq, inv = np.unique(ramp, return_inverse=True)
-    for g, value in enumerate(uniq):
-        sel = np.flatnonzero(inv.ravel() == g)
-        comp[:, sel] = np.moveaxis(_forces_one_ramp(packed[sel], n_z, n_phi, dz_mm, fz[sel], cutter, coeffs,
-                                                    theta, float(value) * RAMP_STEP_DEG), -1, 0)
-    return np.moveaxis(comp, 0, -1)
+    ``engagement`` table stores; memory stays O(chunk), whatever P and the grid size.
 
-
-def _forces_one_ramp(packed, n_z, n_phi, dz_mm, fz_mm, cutter, coeffs, rotation_deg, ramp_deg):
+    The micro-edges' positions over the revolution are computed once; passes are grouped by ramp
+    angle (``RAMP_STEP_DEG``), which changes the chip and so the weights, not by pass.
+    """
     packed = np.asarray(packed, dtype=np.uint8)
     n_pass = packed.shape[0]
     if packed.ndim != 2 or packed.shape[1] != (n_z * n_phi + 7) // 8:
@@ -340,28 +301,38 @@ def _forces_one_ramp(packed, n_z, n_phi, dz_mm, fz_mm, cutter, coeffs, rotation_
     full = edge_grid(cutter, dz_mm, n_z)
     grid = EdgeGrid(full.z_mm[active], full.kappa_rad[active], full.ds_mm[active],
                     full.lag_deg[active], full.radius_mm, full.flutes)
+    phi = flute_positions_deg(grid, theta)                          # (n_rot, N, n_active)
+    cos_phi, sin_phi = np.cos(np.radians(phi)), np.sin(np.radians(phi))
+    bins = np.minimum((phi * (n_phi / 360.0)).astype(np.int64), n_phi - 1)
+    cells = (active[None, None, :] * n_phi + bins).reshape(len(theta), -1)
+    sin_kappa = np.sin(grid.kappa_rad)
+    g_cut, g_edge = edge_force_basis(cos_phi, sin_phi, grid.kappa_rad, coeffs)
+    n_rot = len(theta)
 
-    def weights_for(fz_value, k):
-        w, cells_local = force_weights(grid, n_phi, fz_value, k, theta, runout, ramp_deg)
-        # local level index → the level's row in the full grid
-        level = np.broadcast_to(np.tile(active, grid.flutes), cells_local.shape)
-        cells = level * n_phi + cells_local % n_phi
-        return w, cells
+    def chips(fz_value, ramp):
+        """Chip area h·ds and cutting edge length of each micro-edge, (n_rot, N, n_active, 1)."""
+        h = chip_thickness_mm(fz_value, cos_phi, sin_kappa, rho, ramp)
+        return (h * grid.ds_mm)[..., None], np.where(h > 1e-12, grid.ds_mm, 0.0)[..., None]
 
-    runout = cutter.runout_um
-    if runout == 0.0:
-        # without runout the force is linear in fz: F = fz·F(cutting, fz=1) + F(edge)
-        zero = {"ktc": 0.0, "krc": 0.0, "kac": 0.0, "kte": 0.0, "kre": 0.0, "kae": 0.0}
-        w_c, cells = weights_for(1.0, {**zero, **{k: coeffs.get(k, 0.0) for k in ("ktc", "krc", "kac")}})
-        w_e, _ = weights_for(1.0, {**zero, **{k: coeffs.get(k, 0.0) for k in ("kte", "kre", "kae")}})
-        _gather_matmul(packed, cells, np.concatenate([w_c, w_e], axis=2), comp, fz=fz)
-        return out
-    # with runout the chip is piecewise in fz: one weight set per distinct feed per tooth
-    uniq, inv = np.unique(fz, return_inverse=True)
-    for u, value in enumerate(uniq):
-        sel = np.flatnonzero(inv.ravel() == u)
-        w, cells = weights_for(float(value), coeffs)
-        _gather_matmul(packed[sel], cells, w, comp, rows=sel)
+    j = np.arange(grid.flutes)
+    rho = (cutter.runout_um * 1e-3) * np.cos(2 * np.pi * j / grid.flutes)
+    steps = np.round(np.broadcast_to(np.asarray(ramp_deg, dtype=float), (n_pass,)) / RAMP_STEP_DEG)
+    uniq, inv = np.unique(steps, return_inverse=True)
+    for g, step in enumerate(uniq):
+        sel = np.arange(n_pass) if len(uniq) == 1 else np.flatnonzero(inv.ravel() == g)
+        ramp = float(step) * RAMP_STEP_DEG
+        if cutter.runout_um == 0.0:
+            # without runout the force is linear in fz: F = fz·F(cutting, fz=1) + F(edge)
+            area, length = chips(1.0, ramp)
+            w = np.concatenate([(area * g_cut).reshape(n_rot, -1, 3), (length * g_edge).reshape(n_rot, -1, 3)], axis=2)
+            _gather_matmul(packed[sel], cells, w, comp, rows=sel, fz=fz[sel])
+            continue
+        # with runout the chip is piecewise in fz: one weight set per distinct feed per tooth
+        fu, finv = np.unique(fz[sel], return_inverse=True)
+        for u, value in enumerate(fu):
+            rows = sel[finv.ravel() == u]
+            area, length = chips(float(value), ramp)
+            _gather_matmul(packed[rows], cells, (area * g_cut + length * g_edge).reshape(n_rot, -1, 3), comp, rows=rows)
     return out
 
 
