@@ -97,14 +97,18 @@ def main():
         if len(out) == 2:
             (b1, t1), (b2, t2) = out.items()
             c1, c2 = (t["cut_filter"].column("is_cutting").to_numpy() for t in (t1, t2))
-            g1, g2 = (t["generating"].to_pandas() for t in (t1, t2))
-            same = np.array_equal(c1, c2) and g1.pass_id.tolist() == g2.pass_id.tolist()
-            both = (g1.view == "strip").to_numpy() & (g2.view == "strip").to_numpy() if same else np.zeros(0, bool)
-            dq = np.abs(g1.contact_deg - g2.contact_deg).to_numpy()[both] if same else np.array([np.nan])
-            dphi = (np.abs((g1.rotation_deg - g2.rotation_deg + 180) % 360 - 180).to_numpy()[both]
-                    if same else np.array([np.nan]))
-            print(f"  {b1} vs {b2}: same cutting and predicted passes: {same}; |dq| max {np.max(dq, initial=0):.3f}°, "
-                  f"|dφ| max {np.max(dphi, initial=0):.3f}°")
+            px1, px2 = (t["cut_filter"].column("cut_px").to_numpy() for t in (t1, t2))
+            g1, g2 = (t["generating"].to_pandas().set_index("pass_id") for t in (t1, t2))
+            odd = np.flatnonzero(c1 != c2)
+            common = g1.index.intersection(g2.index)
+            both = ((g1.loc[common].view == "strip") & (g2.loc[common].view == "strip")).to_numpy()
+            h1, h2 = g1.loc[common][both], g2.loc[common][both]
+            dq = np.abs(h1.contact_deg - h2.contact_deg).to_numpy()
+            dphi = np.abs((h1.rotation_deg - h2.rotation_deg + 180) % 360 - 180).to_numpy()
+            print(f"  {b1} vs {b2}: cutting differs on {len(odd)} passes (their cut pixels, largest: "
+                  f"{int(np.maximum(px1[odd], px2[odd]).max(initial=0))}); predicted by one only: "
+                  f"{len(g1.index.symmetric_difference(g2.index))}; on the {len(dq)} passes both predict with a "
+                  f"generating point |dq| max {np.max(dq, initial=0):.3f}°, |dφ| max {np.max(dphi, initial=0):.3f}°")
 
 
 if __name__ == "__main__":

@@ -105,8 +105,8 @@ class Render(_Strict):
     backend: Literal["auto", "gl", "cpu"] = Field("auto", description="gl (headless EGL; llvmpipe without a GPU), "
                                                   "cpu (numpy z-buffer), auto (gl if an EGL context opens)")
     px_per_mm: float = Field(20.0, gt=0, le=1000, description="render resolution, pixels per mm")
-    passes_per_task: int = Field(20000, ge=1, description="a program's scan is split into tasks of about this "
-                                 "many passes (its tiles dealt out; at most 64 tasks)")
+    passes_per_task: int = Field(4000, ge=1, description="a program's scan is split into tasks of about this "
+                                 "many passes (its tiles dealt out; at most 16 tasks)")
 
 
 class Prune(_Strict):

@@ -25,7 +25,7 @@ OUTPUTS = ("forces",)
 PARAMS = ("tool", "material")
 
 N_ROT = DEFAULT_N_ROT
-ROWS_PER_TASK = 4000     # predicted passes per task: a large program's forces spread over the workers
+ROWS_PER_TASK = 1000     # predicted passes per task: a large program's forces spread over the workers
 
 
 def shards(rows: dict, params: dict) -> int:

@@ -36,7 +36,7 @@ PARAMS = ("tool", "render", "prune")
 
 def shards(rows: dict, params: dict) -> int:
     """Tasks a program is scanned in, from its number of passes."""
-    per = int((params.get("render") or {}).get("passes_per_task", 20000))
+    per = int((params.get("render") or {}).get("passes_per_task", 4000))
     return shard_strips(int(rows.get("passes", 0)), per)
 
 

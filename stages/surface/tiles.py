@@ -98,6 +98,6 @@ def tiles(pg: PassGeometry, cutter: Cutter, wp: Workpiece, px_per_mm: float, str
     return out
 
 
-def shard_strips(n_passes: int, passes_per_shard: int = 20000, most: int = 64) -> int:
+def shard_strips(n_passes: int, passes_per_shard: int = 4000, most: int = 16) -> int:
     """How many strips (shards) a program of ``n_passes`` passes is scanned in."""
     return int(min(most, max(1, math.ceil(n_passes / passes_per_shard))))
