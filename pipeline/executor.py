@@ -7,8 +7,8 @@ the cluster spans machines. A stage that declares ``SHARDS = n`` runs each parti
 ``run(inputs, params, shard=(i, n))``, each cached under its own key; when all n are done the client
 joins them (the module's ``combine_shards``) into the partition's entry.
 
-Progress: a bar per stage on a terminal; otherwise (a nightly job's log) one line per stage every
-:data:`LOG_EVERY_S` seconds with done/total, rate and the time left.
+Progress: a bar per stage on a terminal; otherwise (a nightly job's log) a line per stage every
+:data:`LOG_EVERY_S` seconds while it runs, with done/total, rate and the time left, and one at its end.
 """
 from __future__ import annotations
 
@@ -17,6 +17,7 @@ import logging
 import os
 import shutil
 import sys
+import threading
 import time
 import traceback
 from typing import Optional
@@ -116,7 +117,7 @@ class Executor:
                                   key=f"{stage.name}-{k}", pure=False)
                 futs[f] = (part, key)
             left[key], recs[key] = n_sh, []
-        meter = _Progress(stage.name, len(futs), self.progress)
+        meter = Progress(stage.name, len(futs), self.progress)
         try:
             for fut in as_completed(futs):
                 part, key = futs[fut]
@@ -153,30 +154,42 @@ def _join_shards(stage, cache: Cache, key: str, n: int, recs: list) -> dict:
                 "traceback": traceback.format_exc(), "elapsed_s": elapsed}
 
 
-class _Progress:
-    """A tqdm bar on a terminal, a log line every LOG_EVERY_S seconds elsewhere, nothing when off."""
+class Progress:
+    """A tqdm bar on a terminal; elsewhere (a nightly job's log) a line every ``every_s`` seconds
+    while the stage runs, and one when it ends; nothing when off."""
 
-    def __init__(self, name: str, total: int, enabled: bool):
+    def __init__(self, name: str, total: int, enabled: bool, every_s: float = LOG_EVERY_S, stream=None):
         self.name, self.total, self.done = name, total, 0
-        self.t0 = self.last = time.monotonic()
-        self.bar = None
-        self.log = enabled and not sys.stderr.isatty()
-        if enabled and sys.stderr.isatty():
+        self.stream = stream or sys.stderr
+        self.t0 = time.monotonic()
+        self.bar, self._stop, self._thread = None, threading.Event(), None
+        if enabled and self.stream.isatty():
             from tqdm import tqdm
-            self.bar = tqdm(total=total, desc=f"{name:>12}", unit="task", file=sys.stderr, leave=True)
+            self.bar = tqdm(total=total, desc=f"{name:>12}", unit="task", file=self.stream, leave=True)
+        elif enabled:
+            self._thread = threading.Thread(target=self._log_every, args=(every_s,), daemon=True)
+            self._thread.start()
+
+    def _log_every(self, every_s: float):
+        while not self._stop.wait(every_s):
+            self.line()
+
+    def line(self):
+        el = time.monotonic() - self.t0
+        rate = self.done / el if el > 0 else 0.0
+        left = f"{(self.total - self.done) / rate:.0f} s left" if rate > 0 else "time left unknown"
+        print(f"[{time.strftime('%H:%M:%S')}] {self.name}: {self.done}/{self.total} tasks, {rate:.2f}/s, {left}",
+              file=self.stream, flush=True)
 
     def update(self):
         self.done += 1
         if self.bar is not None:
             self.bar.update(1)
-        elif self.log and (time.monotonic() - self.last >= LOG_EVERY_S or self.done == self.total):
-            self.last = time.monotonic()
-            el = self.last - self.t0
-            rate = self.done / el if el > 0 else 0.0
-            eta = (self.total - self.done) / rate if rate > 0 else float("nan")
-            print(f"[{time.strftime('%H:%M:%S')}] {self.name}: {self.done}/{self.total} tasks, "
-                  f"{rate:.2f}/s, {eta:.0f} s left", file=sys.stderr, flush=True)
 
     def close(self):
         if self.bar is not None:
             self.bar.close()
+        if self._thread is not None:
+            self._stop.set()
+            self._thread.join()
+            self.line()

@@ -316,3 +316,28 @@ def test_full_chain_on_a_box_writes_every_table_report_and_corrected_program(tmp
     assert [ln for i, ln in enumerate(src) if i not in motion] == [ln for i, ln in enumerate(new[:2] + new[3:]) if i not in motion]
     corrected = read_table(o, "corrected")
     assert corrected.move_um.max() > 0
+
+
+def test_progress_in_a_log_is_a_line_every_interval_and_one_at_the_end():
+    """Without a terminal (a nightly job's log) a stage whose tasks run long still prints lines."""
+    import io
+    import time
+
+    from pipeline.executor import Progress
+    log = io.StringIO()
+    meter = Progress("scan", 4, True, every_s=0.05, stream=log)
+    time.sleep(0.3)                                   # no task finished yet: lines all the same
+    meter.update()
+    meter.update()
+    meter.close()
+    lines = log.getvalue().splitlines()
+    assert len(lines) >= 4
+    assert all("scan: " in ln and " tasks, " in ln for ln in lines)
+    assert "0/4 tasks" in lines[0] and "time left unknown" in lines[0]
+    assert "2/4 tasks" in lines[-1] and "s left" in lines[-1]
+    n = len(lines)
+    time.sleep(0.2)
+    assert len(log.getvalue().splitlines()) == n        # closed: no more lines
+    quiet = io.StringIO()
+    Progress("scan", 1, False, every_s=0.01, stream=quiet).close()
+    assert quiet.getvalue() == ""
