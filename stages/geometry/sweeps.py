@@ -40,20 +40,21 @@ def sweep_bands(mesh: EnvelopeMesh, p0, p1, view_dir=None):
     p1 = np.atleast_2d(np.asarray(p1, float))
     u = p1 - p0
     s = mesh.face_normals @ u.T                                     # (nf, k)
-    # a face within PARALLEL_TOL of parallel to the motion counts as parallel (s = 0), so that a
+    # a face within PARALLEL_TOL of parallel to the motion counts as parallel (sign 0), so that a
     # pass turned by a few nanoradians has the silhouette of the exact one (see PARALLEL_TOL)
     eps = PARALLEL_TOL * np.maximum(np.linalg.norm(u, axis=1), 1e-30)[None]
-    s = np.where(np.abs(s) <= eps, 0.0, s)
-    sa, sb = s[mesh.edge_faces[:, 0]], s[mesh.edge_faces[:, 1]]     # (ne, k)
-    sil = (sa * sb <= 0) & ~((sa == 0) & (sb == 0))
-    sil &= (np.linalg.norm(u, axis=1) > 1e-12)[None]
-    e, k = np.nonzero(sil)
+    sign = (s > eps).view(np.int8) - (s < -eps).view(np.int8)      # one byte per face and pass
+    edges = np.arange(len(mesh.edges))
     if view_dir is not None:
         # keep the bands a viewer looking along view_dir sees from outside: the band's outward
-        # normal is (nearly) the mean of the two faces that meet at the silhouette edge
-        nb = mesh.face_normals[mesh.edge_faces[e, 0]] + mesh.face_normals[mesh.edge_faces[e, 1]]
-        front = nb @ np.asarray(view_dir, float) < -1e-9
-        e, k = e[front], k[front]
+        # normal is (nearly) the mean of the two faces that meet at the silhouette edge, whatever
+        # the pass, so the edges are chosen before the passes' silhouettes are
+        nb = mesh.face_normals[mesh.edge_faces[:, 0]] + mesh.face_normals[mesh.edge_faces[:, 1]]
+        edges = np.flatnonzero(nb @ np.asarray(view_dir, float) < -1e-9)
+    # a silhouette edge: its faces face opposite ways, or one is parallel and the other not (two
+    # parallel faces, or a pass of no length, make none)
+    e, k = np.nonzero(sign[mesh.edge_faces[edges, 0]] != sign[mesh.edge_faces[edges, 1]])
+    e = edges[e]
     a0 = mesh.edges[e, 0] + p0[k]
     b0 = mesh.edges[e, 1] + p0[k]
     a1 = mesh.edges[e, 0] + p1[k]
