@@ -260,6 +260,8 @@ def _print_summary(s: dict) -> None:
     for st in s["stages"]:
         click.echo(f"{st['name']:>12}  {st['partitions']:>5}  {st['cached']:>6}  {st['computed']:>8}  "
                    f"{st['failed']:>6}  {st['wall_s']:>7.3f}")
+    if s.get("report_error"):
+        click.echo(f"warning: no report ({s['report_error']['message']}); the tables and programs are written", err=True)
     if s["failures"]:
         click.echo(f"{len(s['failures'])} failure(s):", err=True)
         for f in s["failures"]:

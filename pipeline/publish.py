@@ -22,15 +22,15 @@ def publish(run, reports: list, failures: list, wall_s: float) -> dict:
     tables = materialize(run)
     files = write_files(run, failures)
     from pipeline.report import write_report
-    report = None
+    report, report_error = None, None
     try:
         report = write_report(run.out, run.wf.name)
-    except Exception as e:  # a picture must never cost the tables
-        failures.append({"program_id": None, "stage": "report", "message": f"report: {type(e).__name__}: {e}",
-                         "traceback": traceback.format_exc()})
+    except Exception as e:  # a picture never fails a run: the tables and programs are what it is for
+        report_error = {"message": f"report: {type(e).__name__}: {e}", "traceback": traceback.format_exc()}
     summary = summarize(run, reports, failures, tables, wall_s)
     summary["files"] = files
     summary["report"] = str(report) if report else None
+    summary["report_error"] = report_error
     summary["dashboard"] = getattr(run, "dashboard", None)
     if run.repeat is not None:
         summary["rounds"] = {p.program_id: p.rounds for p in run.parts if p.rounds}

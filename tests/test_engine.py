@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 import os
 import signal
 import socket
@@ -316,6 +317,14 @@ def test_full_chain_on_a_box_writes_every_table_report_and_corrected_program(tmp
     assert [ln for i, ln in enumerate(src) if i not in motion] == [ln for i, ln in enumerate(new[:2] + new[3:]) if i not in motion]
     corrected = read_table(o, "corrected")
     assert corrected.move_um.max() > 0
+    # a report that cannot be written (here its directory is a file) is a warning, not a failed run
+    shutil.rmtree(o / "report")
+    (o / "report").write_text("not a directory")
+    code, out = run_cli("run", str(tmp_path / "wf.yaml"), "--workers", "1", "-q")
+    summary = json.loads((o / "run.json").read_text())
+    assert code == 0 and not summary["failures"], out
+    assert "warning: no report" in out and summary["report"] is None and "report" in summary["report_error"]["message"]
+    assert (o / "tables" / "errors" / "box.parquet").is_file() and (o / "nc" / "box.nc").is_file()
 
 
 def test_progress_in_a_log_is_a_line_every_interval_and_one_at_the_end():
