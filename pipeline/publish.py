@@ -27,8 +27,11 @@ def publish(run, reports: list, failures: list, wall_s: float) -> dict:
         report = write_report(run.out, run.wf.name)
     except Exception as e:  # a picture never fails a run: the tables and programs are what it is for
         report_error = {"message": f"report: {type(e).__name__}: {e}", "traceback": traceback.format_exc()}
+    from pipeline.duckdb_views import write_views
+    views = write_views(run.out, run.wf.name)
     summary = summarize(run, reports, failures, tables, wall_s)
     summary["files"] = files
+    summary["duckdb"] = str(views) if views else None
     summary["report"] = str(report) if report else None
     summary["report_error"] = report_error
     summary["dashboard"] = getattr(run, "dashboard", None)

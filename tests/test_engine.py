@@ -47,6 +47,14 @@ def run_cli(*args) -> tuple[int, str]:
     return r.exit_code, r.output
 
 
+def readme_queries() -> list[str]:
+    """The SQL statements of the README's sql blocks."""
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    blocks = [b.split("```", 1)[0] for b in text.split("```sql")[1:]]
+    stmts = [s.strip() for b in blocks for s in b.split(";")]
+    return [s for s in ("\n".join(ln for ln in st.splitlines() if not ln.startswith("--")) for st in stmts) if s.strip()]
+
+
 def run_json(out: Path) -> dict:
     return json.loads((out / "run.json").read_text())
 
@@ -317,6 +325,16 @@ def test_full_chain_on_a_box_writes_every_table_report_and_corrected_program(tmp
     assert [ln for i, ln in enumerate(src) if i not in motion] == [ln for i, ln in enumerate(new[:2] + new[3:]) if i not in motion]
     corrected = read_table(o, "corrected")
     assert corrected.move_um.max() > 0
+    # the README's queries run on the run's DuckDB file; its joined view agrees with the tables
+    con = duckdb.connect(str(o / "t.duckdb"), read_only=True)
+    for query in readme_queries():
+        assert len(con.sql(query).fetchall()) >= 1, query
+    view = con.sql("select * from pass_errors order by pass_id").df()
+    assert len(view) == len(passes) and set(view.motion) <= {"rapid", "linear", "arc_cw", "arc_ccw"}
+    assert (view.motion == "rapid").sum() == (passes.motion == 0).sum()
+    e = view.dropna(subset=["err_um"]).set_index("pass_id").err_um.sort_index()
+    assert np.array_equal(e.to_numpy(), err.set_index("pass_id").err_um.sort_index().to_numpy())
+    con.close()
     # a report that cannot be written (here its directory is a file) is a warning, not a failed run
     shutil.rmtree(o / "report")
     (o / "report").write_text("not a directory")
