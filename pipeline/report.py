@@ -37,8 +37,36 @@ def error_points(out: Path) -> pd.DataFrame | None:
     return df
 
 
+def _span(ax, x, y, least_mm: float = 1.0):
+    """Axis limits around the points, at least ``least_mm`` wide (one point, one line of points)."""
+    for values, set_lim in ((np.asarray(x, float), ax.set_xlim), (np.asarray(y, float), ax.set_ylim)):
+        v = values[np.isfinite(values)]
+        if len(v) == 0:
+            continue
+        mid, half = 0.5 * (v.min() + v.max()), max(0.5 * (v.max() - v.min()), 0.5 * least_mm) * 1.05
+        set_lim(mid - half, mid + half)
+
+
+def _nothing_predicted(out: Path, title: str) -> Path | None:
+    """The page of a run whose passes exist but none has a predicted error; None before passes."""
+    passes = _read(out / "tables", "passes")
+    if passes is None:
+        return None
+    cut = _read(out / "tables", "cut_filter")
+    n_cut = int(cut.is_cutting.sum()) if cut is not None else 0
+    rep = out / "report"
+    rep.mkdir(parents=True, exist_ok=True)
+    path = rep / "index.html"
+    path.write_text(f"""<!doctype html><meta charset="utf-8"><title>{html.escape(title)} — predicted machining error</title>
+<h1>{html.escape(title)}: predicted machining error</h1>
+<p>No pass has a predicted error: {len(passes)} passes, {n_cut} of them cutting; none was predicted
+(see <code>angle_prune</code>: passes whose surface's contact angle is below <code>prune.min_contact_deg</code>
+are not predicted) or the run stopped before <code>errors</code>.</p>""")
+    return path
+
+
 def write_report(out: str | Path, title: str = "run") -> Path | None:
-    """Write ``<out>/report/`` (PNG pictures + index.html). Returns the HTML path, None if no errors yet."""
+    """Write ``<out>/report/`` (PNG pictures + index.html). Returns the HTML path, None before passes."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -46,7 +74,7 @@ def write_report(out: str | Path, title: str = "run") -> Path | None:
     out = Path(out)
     df = error_points(out)
     if df is None:
-        return None
+        return _nothing_predicted(out, title)
     rep = out / "report"
     rep.mkdir(parents=True, exist_ok=True)
     e = df.err_um.to_numpy()
@@ -57,8 +85,10 @@ def write_report(out: str | Path, title: str = "run") -> Path | None:
     order = np.argsort(np.abs(e))  # largest errors drawn last, on top
     sc = axes[0].scatter(df.gen_x_mm.iloc[order], df.gen_y_mm.iloc[order], c=e[order], s=3, cmap=cmap, vmin=-lim, vmax=lim)
     axes[0].set(aspect="equal", xlabel="X mm", ylabel="Y mm", title="Predicted error, top view (generating points)")
+    _span(axes[0], df.gen_x_mm, df.gen_y_mm)
     axes[1].scatter(df.gen_x_mm.iloc[order], df.gen_z_mm.iloc[order], c=e[order], s=3, cmap=cmap, vmin=-lim, vmax=lim)
     axes[1].set(xlabel="X mm", ylabel="Z mm", title="Side view (looking along +Y)")
+    _span(axes[1], df.gen_x_mm, df.gen_z_mm)
     fig.colorbar(sc, ax=axes, label="err_um  (+ material left, − overcut)", shrink=0.85)
     fig.savefig(rep / "error_map.png", dpi=110)
     plt.close(fig)

@@ -368,3 +368,48 @@ def test_progress_in_a_log_is_a_line_every_interval_and_one_at_the_end():
     quiet = io.StringIO()
     Progress("scan", 1, False, every_s=0.01, stream=quiet).close()
     assert quiet.getvalue() == ""
+
+
+SLOT_PROGRAM = b"""%
+O3001 (ONE SLOT)
+G90 G17 G21
+T1 M6
+S6000 M3
+G0 X-6. Y10. Z5.
+G1 Z-1. F300
+G1 X26. F600
+G0 Z5.
+M5
+M30
+%
+"""
+
+
+@pytest.mark.parametrize("case", ["one cutting pass", "one slot in pieces", "nothing predicted"])
+def test_degenerate_jobs_get_a_report_and_exit_0(tmp_path, case):
+    """One move of a flat end mill slotting a box (exact forces, one predicted pass), the same slot in
+    pieces, and a ball skimming a flat top 0.3 mm deep (its contact angle 26° < 45°: nothing is
+    predicted): each gets a report and exits 0."""
+    flat = case != "nothing predicted"
+    wf = dict(WF, until=None, stock={"box": [0, 0, -10, 20, 20, 0]},
+              tool={"type": "flat", "diameter_mm": 10, "flutes": 2} if flat else WF["tool"],
+              render={"backend": "auto", "px_per_mm": 20},
+              prune={"min_contact_deg": 0 if flat else 45},
+              split={"max_pass_mm": 100.0 if case == "one cutting pass" else 3.0},
+              machine={"frf": {"x": [{"fn_hz": 900, "zeta": 0.03, "k_n_per_um": 2.0}],
+                               "y": [{"fn_hz": 900, "zeta": 0.03, "k_n_per_um": 2.0}]}})
+    (tmp_path / "nc").mkdir()
+    (tmp_path / "nc" / "job.nc").write_bytes(SLOT_PROGRAM if flat else BOX_PROGRAM)
+    (tmp_path / "wf.yaml").write_text(yaml.safe_dump(wf))
+    code, out = run_cli("run", str(tmp_path / "wf.yaml"), "--workers", "1", "-q")
+    summary = run_json(tmp_path / "out")
+    assert code == 0 and not summary["failures"] and summary["report_error"] is None, out
+    page = (tmp_path / "out" / "report" / "index.html").read_text()
+    cut = read_table(tmp_path / "out", "cut_filter")
+    pred = int(read_table(tmp_path / "out", "angle_prune").predict.sum())
+    if case == "one cutting pass":
+        assert cut.is_cutting.sum() == 1 and pred == 1     # the slot (the plunge is off the box)
+    if case == "nothing predicted":
+        assert cut.is_cutting.sum() >= 3 and pred == 0 and "No pass has a predicted error" in page
+    else:
+        assert pred >= 1 and (tmp_path / "out" / "report" / "error_map.png").is_file()
