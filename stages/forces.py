@@ -16,7 +16,7 @@ from stages import InputError
 from stages.cutting.forces import (
     COEFF_NAMES, DEFAULT_N_ROT, cutting_forces_packed, feed_per_tooth_mm, rotation_grid_deg)
 from stages.geometry.cutter import Cutter
-from stages.tables import binary_rows, list_column, match_passes, pick_entry, program_tool_number
+from stages.tables import binary_rows, list_column, match_passes, pick_entry, program_tool_number, task_count
 
 NAME = "forces"
 VERSION = "2"
@@ -30,7 +30,7 @@ ROWS_PER_TASK = 1000     # predicted passes per task: a large program's forces s
 
 def shards(rows: dict, params: dict) -> int:
     """Tasks a program's forces are computed in, from its number of predicted passes."""
-    return int(min(64, max(1, -(-int(rows.get("engagement", 0)) // ROWS_PER_TASK))))
+    return task_count(rows.get("engagement", 0), ROWS_PER_TASK, 64)
 
 
 def combine_shards(parts: list[dict]) -> dict:

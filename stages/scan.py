@@ -25,19 +25,20 @@ from stages.render import make_renderer
 from stages.surface.engagement import N_PHI, ramp_deg
 from stages.surface.program import CUT_COLUMNS, scan_program
 from stages.surface.strip import GEN_COLUMNS
-from stages.surface.tiles import shard_strips
+from stages.tables import task_count
 
 NAME = "scan"
 VERSION = "1"
 INPUTS = ("passes", "stock", "nominal")
 OUTPUTS = ("cut_filter", "angle_prune", "generating", "engagement")
 PARAMS = ("tool", "render", "prune")
+MOST_TASKS = 16          # a program's tiles are dealt to at most this many tasks
 
 
 def shards(rows: dict, params: dict) -> int:
     """Tasks a program is scanned in, from its number of passes."""
     per = int((params.get("render") or {}).get("passes_per_task", 4000))
-    return shard_strips(int(rows.get("passes", 0)), per)
+    return task_count(rows.get("passes", 0), per, MOST_TASKS)
 
 
 def run(inputs: dict, params: dict, shard: tuple[int, int] | None = None) -> dict:

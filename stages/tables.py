@@ -9,6 +9,11 @@ import pyarrow as pa
 from stages import InputError
 
 
+def task_count(n_rows: int, rows_per_task: int, most: int) -> int:
+    """Tasks a stage splits one program into: about ``rows_per_task`` rows each, 1 … ``most``."""
+    return int(min(most, max(1, -(-int(n_rows) // max(1, int(rows_per_task))))))
+
+
 def col(table: pa.Table, name: str, dtype=float) -> np.ndarray:
     """One column as a numpy array of ``dtype`` (nulls become NaN for floats)."""
     return table.column(name).to_numpy(zero_copy_only=False).astype(dtype)

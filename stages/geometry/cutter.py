@@ -105,10 +105,6 @@ class Cutter:
         """Height of the NC control point above the tip (0 for tip programs, rc for centre programs)."""
         return self.corner_mm if self.control_point == "center" else 0.0
 
-    def shape_key(self) -> tuple:
-        """What the envelope's geometry depends on (a cache key for meshes)."""
-        return (self.kind, self.radius_mm, self.corner_mm, self.stickout_mm)
-
     # ------------------------------------------------------------------ the envelope
     def profile_radius(self, z_mm):
         """Radius of the envelope at height ``z_mm`` above the tip (NaN below the tip)."""

@@ -8,7 +8,6 @@ dealt to the shards, so a large program spreads over the workers; memory is boun
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,11 +28,6 @@ class Tile:
     hi: np.ndarray           # (2,)
     drawn: np.ndarray        # pass indices whose sweep reaches into the window, in execution order
     owned: np.ndarray        # pass indices this tile reports
-
-
-def coarse_tolerance(px_per_mm: float) -> float:
-    """Mesh tolerance for cut/no-cut decisions: half a pixel."""
-    return 0.5 / float(px_per_mm)
 
 
 def fine_tolerance(px_per_mm: float) -> float:
@@ -96,8 +90,3 @@ def tiles(pg: PassGeometry, cutter: Cutter, wp: Workpiece, px_per_mm: float, str
         view = View((ctr[0], ctr[1], 0.0), (0, 0, 1.0), (0, 1.0, 0), hi[0] - lo[0], hi[1] - lo[1], px_per_mm, zlo, zhi)
         out.append(Tile(view, lo, hi, cand[reach], idx))
     return out
-
-
-def shard_strips(n_passes: int, passes_per_shard: int = 4000, most: int = 16) -> int:
-    """How many strips (shards) a program of ``n_passes`` passes is scanned in."""
-    return int(min(most, max(1, math.ceil(n_passes / passes_per_shard))))
