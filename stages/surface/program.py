@@ -59,7 +59,7 @@ def scan_program(pg: PassGeometry, cutter: Cutter, wp: Workpiece, renderer, px_p
             pred = k[predict]
             tips = np.stack([cf["pred_x_mm"], cf["pred_y_mm"], cf["pred_z_mm"]], 1)[predict]
         else:
-            pred = np.array(sorted(p for p in at if p in set(k.tolist())), np.int64)
+            pred = np.intersect1d(np.fromiter(at, np.int64, len(at)), k)
             tips = np.array([at[p] for p in pred], float).reshape(-1, 3)
         s_tip = pg.s0[pred] + np.linalg.norm(tips - pg.p0[pred], axis=1)
         gen = generating_points(ts, pg, cutter, pred, tips, mesh.tol_mm, design, steep_deg)
