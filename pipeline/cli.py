@@ -260,6 +260,18 @@ def _print_summary(s: dict) -> None:
     for st in s["stages"]:
         click.echo(f"{st['name']:>12}  {st['partitions']:>5}  {st['cached']:>6}  {st['computed']:>8}  "
                    f"{st['failed']:>6}  {st['wall_s']:>7.3f}")
+    for pid, k in (s.get("kept") or {}).items():
+        if not k["stalled"]:
+            continue
+        first = f"{k['first_rms_dev_um']:.1f}"
+        if k["kept_round"]:
+            click.echo(f"{pid}: rounds stopped at {k['rounds']} (the predicted deviation stopped falling); "
+                       f"round {k['kept_round']}'s correction is written: deviation RMS {first} -> "
+                       f"{k['kept_rms_dev_um']:.1f} um predicted")
+        else:
+            click.echo(f"warning: {pid}: no corrected program is written: none was predicted to deviate less "
+                       f"than the program as written ({first} um RMS); a path offset does not help there",
+                       err=True)
     if s.get("report_error"):
         click.echo(f"warning: no report ({s['report_error']['message']}); the tables and programs are written", err=True)
     if s["failures"]:

@@ -36,6 +36,7 @@ class Partition:
     failed: Optional[str] = None          # first failure message (stops later stages)
     tool_t: Optional[int] = None
     rounds: list = field(default_factory=list)   # per-round records of the graph's Repeat
+    stalled: bool = False                 # the Repeat stopped because its rounds stopped paying
 
     def located(self, name: str, rnd: int):
         """(stage, key) of input ``name`` (with its @first / @previous qualifier) in round ``rnd``."""
@@ -217,7 +218,7 @@ class Run:
         for part in done:
             part.rounds.append(self._round_record(part, 1))
         for rnd in range(2, int(self.wf.value(rep.max_rounds)) + 1):
-            active = [p for p in done if not p.failed and not self._converged(p, rnd - 1)]
+            active = [p for p in done if not p.failed and not p.stalled and not self._converged(p, rnd - 1)]
             if not active:
                 break
             for stage in rep.stages:
@@ -225,6 +226,7 @@ class Run:
             for part in active:
                 if not part.failed:
                     part.rounds.append(self._round_record(part, rnd))
+                    part.stalled = bool(rep.stalled(part.rounds))
 
     def _converged(self, part: Partition, rnd: int) -> bool:
         stage_name, key = part.tables[rnd][self.repeat.until_table]
@@ -239,8 +241,11 @@ class Run:
             tables[name] = self.cache.read(stage_name, key, name.partition("@")[0])
         return {"round": rnd, **self.repeat.record(tables)}
 
-    def last_round(self, part: Partition) -> int:
-        return max(part.tables)
+    def kept_round(self, part: Partition) -> int:
+        """The round whose ``keep_last`` tables a partition publishes (0: none)."""
+        if not part.rounds:
+            return max(part.tables)
+        return int(self.repeat.keep(part.rounds, part.stalled))
 
     # --- status ------------------------------------------------------------------------------------------
     def status(self) -> list[dict]:

@@ -53,11 +53,12 @@ class Stage:
 @dataclass(frozen=True)
 class Repeat:
     """Repeat ``stages`` (the tail of the graph, plus stages that only run in later rounds) until
-    ``until(table, params)`` says the round converged or ``max_rounds`` (a workflow key) rounds ran.
+    ``until(table, params)`` says the round converged, ``stalled(records)`` says the rounds stopped
+    paying, or ``max_rounds`` (a workflow key) rounds ran.
 
     ``record(tables) -> dict`` summarises each round for ``run.json`` from the tables it names in
-    ``record_inputs``; ``keep_last`` tables are published from the last round, the others from the
-    first (the prediction of the program as written).
+    ``record_inputs``; ``keep_last`` tables are published from the round ``keep(records, stalled)``
+    names (0: not published), the others from the first (the prediction of the program as written).
     """
 
     stages: tuple
@@ -67,6 +68,8 @@ class Repeat:
     record: Callable
     record_inputs: tuple
     keep_last: tuple
+    stalled: Callable = lambda records: False
+    keep: Callable = lambda records, stalled: len(records)
 
 
 @dataclass(frozen=True)
@@ -103,7 +106,8 @@ def mould_graph() -> Graph:
     main = tuple(Stage.of(m) for m in (parse, split, scan, forces, deflection, errors, correct))
     rounds = Repeat(stages=(Stage.of(correct_blocks),) + main[1:], until=correct.converged,
                     until_table="corrected", max_rounds="correct.max_iter", record=correct.round_record,
-                    record_inputs=("errors", "corrected", "passes", "passes@first"), keep_last=("corrected",))
+                    record_inputs=("errors", "corrected", "passes", "passes@first"), keep_last=("corrected",),
+                    stalled=correct.stalled, keep=correct.kept_round)
     nc = Writer("nc", corrected_programs, inputs=("program_file", "blocks", "corrected", "errors"),
                 params=("correct",), directory="nc")
     return Graph(sources={"program_file": "partition", "stock": "stock", "nominal": "nominal"},

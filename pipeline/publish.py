@@ -3,7 +3,7 @@
 ``<out>/tables/<table>/<program_id>.parquet`` are hard links to cache entries (copies where links are
 impossible), rebuilt every run so they hold exactly this workflow's programs: each table from the
 last stage that wrote it in the first round (the prediction of the programs as written), the
-Repeat's ``keep_last`` tables from the last round. The graph's writers then make their files (the
+Repeat's ``keep_last`` tables from the round it keeps (:meth:`Run.kept_round`). The graph's writers then make their files (the
 corrected NC programs), each written to a temporary name and renamed.
 """
 from __future__ import annotations
@@ -37,16 +37,32 @@ def publish(run, reports: list, failures: list, wall_s: float) -> dict:
     summary["dashboard"] = getattr(run, "dashboard", None)
     if run.repeat is not None:
         summary["rounds"] = {p.program_id: p.rounds for p in run.parts if p.rounds}
+        summary["kept"] = {p.program_id: kept_summary(p.rounds, run.kept_round(p), p.stalled)
+                           for p in run.parts if p.rounds}
     (run.out / "run.json").write_text(json.dumps(summary, indent=2, default=str))
     return summary
+
+
+def kept_summary(records: list, kept: int, stalled: bool) -> dict:
+    """Which round's output a partition publishes and what its rounds predicted, for ``run.json``.
+
+    ``rms_dev_um`` of round k + 1 is the prediction of round k's output (None: not predicted, the
+    last round's output).
+    """
+    dev = lambda k: records[k]["rms_dev_um"] if k < len(records) else None  # noqa: E731
+    return {"rounds": len(records), "kept_round": kept, "stalled": stalled,
+            "first_rms_dev_um": dev(0), "kept_rms_dev_um": dev(kept) if kept else None}
 
 
 def final_tables(run, part) -> dict:
     """table → (stage, key) of what a partition publishes."""
     out = dict(part.tables[1])
     if run.repeat is not None:
-        last = part.tables[run.last_round(part)]
-        out.update({t: last[t] for t in run.repeat.keep_last if t in last})
+        kept = run.kept_round(part)
+        for t in run.repeat.keep_last:
+            out.pop(t, None)
+            if kept and t in part.tables[kept]:
+                out[t] = part.tables[kept][t]
     return out
 
 
@@ -80,9 +96,14 @@ def _atomic_write(path: Path, data: bytes) -> None:
 
 
 def write_files(run, failures: list) -> int:
-    """The graph's writers over every partition that has their inputs; returns how many files."""
+    """The graph's writers over every partition that has their inputs; returns how many files.
+
+    A writer's directory holds this run's files only, as ``tables/`` does: a file of an earlier run
+    whose partition has no output now (a failed program, a correction not kept) is removed.
+    """
     n = 0
     for writer in run.graph.writers:
+        written = set()
         for part in run.parts:
             if part.failed:
                 continue
@@ -102,11 +123,17 @@ def write_files(run, failures: list) -> int:
                 outdir.mkdir(parents=True, exist_ok=True)
                 for fname, data in files.items():
                     _atomic_write(outdir / fname, data)
+                    written.add(fname)
                     n += 1
             except Exception as e:  # one program's output must not cost the others
                 failures.append({"program_id": part.program_id, "stage": writer.name,
                                  "message": f"{writer.name}: {type(e).__name__}: {e}",
                                  "traceback": traceback.format_exc()})
+        outdir = run.out / writer.directory
+        if outdir.is_dir():
+            for old in outdir.iterdir():
+                if old.is_file() and old.name not in written:
+                    old.unlink()
     return n
 
 

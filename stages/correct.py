@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import pyarrow as pa
 
-from stages.correction.rounds import correct_once, errors_on_passes, with_missing_from
+from stages.correction.rounds import correct_once, errors_on_passes, match_passes, pass_midpoints, with_missing_from
 from stages.geometry.cutter import Cutter
 from stages.tables import col, pick_entry, program_tool_number, xyz
 
@@ -46,12 +46,42 @@ def converged(corrected: pa.Table, params: dict) -> bool:
     return not (change.size and float(change.max()) >= float((params.get("correct") or {}).get("tol_um", 0.1)))
 
 
+# a round whose prediction lowers the deviation RMS by less than this fraction of the best earlier
+# one stops the rounds: another full prediction of the program would not pay for itself
+STALL_FRACTION = 0.01
+
+
+def stalled(records: list[dict]) -> bool:
+    """Whether the last round's prediction did not lower the deviation from the original surface
+    (``rms_dev_um``) by :data:`STALL_FRACTION` below every earlier round's."""
+    devs = [r.get("rms_dev_um") for r in records]
+    if len(devs) < 2 or devs[-1] is None or all(d is None for d in devs[:-1]):
+        return False
+    return devs[-1] > (1.0 - STALL_FRACTION) * min(d for d in devs[:-1] if d is not None)
+
+
+def kept_round(records: list[dict], stopped: bool) -> int:
+    """The round whose ``corrected`` table is the published correction.
+
+    Round k's record is the prediction of the program corrected in round k − 1 (round 1: the program
+    as written). Rounds that ran to ``tol_um`` or ``max_iter`` publish the last correction. Rounds that
+    stalled publish the correction whose prediction deviated least from the original surface, and
+    none (0) when no corrected program was predicted to deviate less than the program as written:
+    a path offset does not help there (a deflection that changes with the offset).
+    """
+    if not stopped:
+        return len(records)
+    devs = [np.inf if r.get("rms_dev_um") is None else r["rms_dev_um"] for r in records]
+    return int(np.argmin(devs))            # index k − 1 of the best round k is the round that corrected it
+
+
 def round_record(tables: dict) -> dict:
     """What a round predicted and changed, for ``run.json``.
 
     ``rms_err_um``: predicted error of the path this round predicted on, relative to that path.
     ``rms_dev_um``: the same as deviation from the ORIGINAL program's surface, e + (P − P0)·n with
-    the path shift at each pass midpoint (None when the corrected program split into other passes).
+    the path shift at each pass midpoint: its distance to the chord of the original pass (the one in
+    the same block whose midpoint is nearest, where the corrected program split into other passes).
     ``max_change_um``: the largest vertex change this round made.
     """
     errors, cor = tables["errors"], tables["corrected"]
@@ -59,10 +89,18 @@ def round_record(tables: dict) -> dict:
     err = col(errors, "err_um") if errors.num_rows else np.zeros(0)
     fin = np.isfinite(err)
     dev = None
-    if p.num_rows == p0.num_rows and np.array_equal(col(p, "block_no", np.int64), col(p0, "block_no", np.int64)):
-        mid = lambda t: (xyz(t, ("x0_mm", "y0_mm", "z0_mm")) + xyz(t, ("x1_mm", "y1_mm", "z1_mm"))) / 2  # noqa: E731
-        rows = np.searchsorted(col(p, "pass_id", np.int64), col(errors, "pass_id", np.int64))
-        dev = err + 1000.0 * np.einsum("ij,ij->i", (mid(p) - mid(p0))[rows], xyz(errors, ("nx", "ny", "nz")))
+    if errors.num_rows:
+        eid = col(errors, "pass_id", np.int64)
+        target, ok = match_passes(eid, p, p0)
+        ok = np.ones(eid.size, bool) if ok is None else ok
+        # the path shift at the pass's midpoint: to the nearest point of the original pass's chord
+        mid = pass_midpoints(p)[np.searchsorted(col(p, "pass_id", np.int64), eid)]
+        row0 = np.minimum(np.searchsorted(col(p0, "pass_id", np.int64), target), p0.num_rows - 1)
+        a, b = xyz(p0, ("x0_mm", "y0_mm", "z0_mm"))[row0], xyz(p0, ("x1_mm", "y1_mm", "z1_mm"))[row0]
+        ab = b - a
+        t = np.clip(np.einsum("ij,ij->i", mid - a, ab) / np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-24), 0, 1)
+        shift = mid - (a + t[:, None] * ab)
+        dev = np.where(ok, err + 1000.0 * np.einsum("ij,ij->i", shift, xyz(errors, ("nx", "ny", "nz"))), np.nan)
     change = col(cor, "change_um") if cor.num_rows else np.zeros(0)
     move = col(cor, "move_um") if cor.num_rows else np.zeros(0)
     rms = lambda x: float(np.sqrt(np.mean(x ** 2))) if x.size else 0.0  # noqa: E731

@@ -371,3 +371,18 @@ def test_normals_a_few_degrees_apart_do_not_slide_the_vertex_along_a_straight_pa
     assert np.allclose(t[[0, 2, 3]], 0.0) and np.linalg.norm(t[1]) == pytest.approx(1.0)
     free = vertex_moves(ea, na, yes, eb, nb, yes, along_path=np.zeros((1, 3)))[0]
     assert np.abs([free @ na[0] + ea[0], free @ nb[0] + eb[0]]).max() < 0.05 * abs(ea[0])
+
+
+@pytest.mark.parametrize("devs, stalled, kept", [
+    ([30.0], False, 1),                        # one round: its correction, unpredicted
+    ([30.0, 10.0, 5.0], False, 3),             # every round paid: the last correction
+    ([30.0, 10.0, 9.95], True, 2),             # < 1 % better than the best: stop, keep round 2's
+    ([30.0, 10.0, 12.0], True, 1),             # worse: stop, keep round 1's (predicted 10.0)
+    ([30.0, 31.0], True, 0),                   # no correction deviates less than the program as written
+    ([30.0, None], False, 2),                  # nothing predicted to compare: go on
+])
+def test_rounds_stop_when_the_predicted_deviation_stops_falling(devs, stalled, kept):
+    from stages.correct import kept_round, stalled as is_stalled
+    records = [{"round": k + 1, "rms_dev_um": d} for k, d in enumerate(devs)]
+    assert is_stalled(records) is stalled
+    assert kept_round(records, stalled) == kept

@@ -18,6 +18,7 @@ import shutil
 
 import numpy as np
 import pandas as pd
+import pytest
 import pyarrow.parquet as pq
 import trimesh
 import yaml
@@ -222,3 +223,35 @@ def test_errors_follow_their_pass_when_the_corrected_program_splits_differently(
     assert len(out) == len(f)
     # identical splits: the table comes back as it is
     assert errors_on_passes(err, fine, fine) is err
+
+
+def test_round_deviation_is_the_error_plus_the_path_shift_when_the_split_differs():
+    # the fine split moved 10 µm along +z and predicted −10 µm along +z: the surface it leaves is
+    # the original one (deviation 0); a shift along x (perpendicular to the normal) adds nothing
+    from stages.correct import round_record
+    from stages.nc.moves import split_blocks
+    import pyarrow as pa
+    import pyarrow.compute as pc
+    blocks, _ = parse_program(_program(), "cyl.nc", "cyl")
+    base = {"machine": {"rapid_mm_min": 30000.0}, "tool": {"type": "ball", "diameter_mm": 20.0, "control_point": "tip"}}
+    fine = split_blocks(blocks, dict(base, split={"chord_tol_mm": 0.001, "max_pass_mm": 2.5, "merge_max_mm": 0.5}))
+    coarse = split_blocks(blocks, dict(base, split={"chord_tol_mm": 0.001, "max_pass_mm": 5.0, "merge_max_mm": 0.5}))
+    assert fine.num_rows > coarse.num_rows
+    moved = fine
+    for c, d in (("z0_mm", 0.010), ("z1_mm", 0.010), ("x0_mm", 0.003), ("x1_mm", 0.003)):
+        moved = moved.set_column(moved.schema.get_field_index(c), c, pc.add(moved.column(c), d))
+    n = fine.num_rows
+    corrected = pa.table({"change_um": np.zeros(n), "move_um": np.full(n, 10.0), "clipped": np.zeros(n, bool)})
+
+    f = fine.to_pandas()
+    along_y = ((f.x0_mm == f.x1_mm) & (f.z0_mm == f.z1_mm) & (f.y0_mm != f.y1_mm)).to_numpy()   # the cutting passes
+    m = int(along_y.sum())
+    assert m > 10
+
+    def record(err_um):
+        errors = pa.table({"program_id": ["cyl"] * m, "pass_id": f.pass_id.to_numpy()[along_y], "err_um": np.full(m, err_um),
+                           "nx": np.zeros(m), "ny": np.zeros(m), "nz": np.ones(m)})
+        return round_record({"errors": errors, "corrected": corrected, "passes": moved, "passes@first": coarse})
+    assert record(-10.0)["rms_dev_um"] == pytest.approx(0.0, abs=1e-6)
+    assert record(-4.0)["rms_dev_um"] == pytest.approx(6.0, abs=1e-6)
+    assert record(-4.0)["rms_err_um"] == pytest.approx(4.0)

@@ -400,28 +400,44 @@ def errors_on_passes(errors: pa.Table, passes_from: pa.Table, passes_to: pa.Tabl
     """
     if errors.num_rows == 0:
         return errors
+    target, ok = match_passes(_col(errors, "pass_id", np.int64), passes_from, passes_to)
+    if ok is None:
+        return errors
+    out = errors.filter(pa.array(ok))
+    return out.set_column(out.schema.get_field_index("pass_id"), "pass_id",
+                          pa.array(target[ok], out.schema.field("pass_id").type))
+
+
+def match_passes(pass_ids: np.ndarray, passes_from: pa.Table, passes_to: pa.Table):
+    """The pass of ``passes_to`` that each pass ``pass_ids`` of ``passes_from`` corresponds to.
+
+    Same block, nearest midpoint (see :func:`errors_on_passes`).
+
+    Returns
+    -------
+    (target pass ids, found flags); ``(pass_ids, None)`` when both splits are the same.
+    """
     def sig(p):
         return (_col(p, "pass_id", np.int64), _col(p, "block_no", np.int64), _col(p, "block_end", np.int64))
     a, b = sig(passes_from.sort_by("pass_id")), sig(passes_to.sort_by("pass_id"))
     if a[0].size == b[0].size and all(np.array_equal(x, y) for x, y in zip(a, b)):
-        return errors
+        return pass_ids, None
     from scipy.spatial import cKDTree
-    mid = lambda p: (_xyz(p, ("x0_mm", "y0_mm", "z0_mm")) + _xyz(p, ("x1_mm", "y1_mm", "z1_mm"))) / 2  # noqa: E731
     pf, pt = passes_from.sort_by("pass_id"), passes_to.sort_by("pass_id")
-    eid = _col(errors, "pass_id", np.int64)
-    row = np.searchsorted(a[0], eid)
-    row = np.minimum(row, a[0].size - 1)
-    ok = a[0][row] == eid
+    row = np.minimum(np.searchsorted(a[0], pass_ids), max(a[0].size - 1, 0))
+    ok = a[0][row] == pass_ids
     k = min(8, pt.num_rows)
-    dist, idx = cKDTree(mid(pt)).query(mid(pf)[row], k=k)
+    dist, idx = cKDTree(pass_midpoints(pt)).query(pass_midpoints(pf)[row], k=k)
     idx = idx.reshape(row.size, k)
     same = b[1][idx] == a[1][row][:, None]
     first = np.argmax(same, axis=1)
     ok &= same[np.arange(row.size), first]
-    target = b[0][idx[np.arange(row.size), first]]
-    out = errors.filter(pa.array(ok))
-    return out.set_column(out.schema.get_field_index("pass_id"), "pass_id",
-                          pa.array(target[ok], out.schema.field("pass_id").type))
+    return b[0][idx[np.arange(row.size), first]], ok
+
+
+def pass_midpoints(passes: pa.Table) -> np.ndarray:
+    """Midpoint of each pass's chord (mm), in table order."""
+    return (_xyz(passes, ("x0_mm", "y0_mm", "z0_mm")) + _xyz(passes, ("x1_mm", "y1_mm", "z1_mm"))) / 2
 
 
 def with_missing_from(errors: pa.Table, fallback: pa.Table | None) -> pa.Table:
