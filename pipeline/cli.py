@@ -276,8 +276,32 @@ def _print_summary(s: dict) -> None:
         click.echo(f"warning: no report ({s['report_error']['message']}); the tables and programs are written", err=True)
     if s["failures"]:
         click.echo(f"{len(s['failures'])} failure(s):", err=True)
+        problems = _problems(Path(s["output"]))
         for f in s["failures"]:
             click.echo(f"  [{f['stage']}] {f['message']}", err=True)
+            rows = problems.get(f["program_id"], [])
+            if len(rows) > 1:
+                for r in rows[:SHOWN_PROBLEMS]:
+                    click.echo(f"      {r}", err=True)
+                if len(rows) > SHOWN_PROBLEMS:
+                    click.echo(f"      … {len(rows) - SHOWN_PROBLEMS} more in the problems table", err=True)
+
+
+# problems of a failed program printed under its failure (all are in <out>/tables/problems)
+SHOWN_PROBLEMS = 5
+
+
+def _problems(out: Path) -> dict[str, list[str]]:
+    """program id → its problems as ``path:line: message at column c`` lines, from the run's table."""
+    import pyarrow.parquet as pq
+    from stages.nc.lexer import where
+    d = out / "tables" / "problems"
+    rows: dict[str, list[str]] = {}
+    for f in sorted(d.glob("*.parquet")) if d.is_dir() else []:
+        for r in pq.read_table(f).to_pylist():
+            rows.setdefault(r["program_id"], []).append(
+                f"{r['path']}:{r['line']}: {where(r['message'], r['column'])}")
+    return rows
 
 
 if __name__ == "__main__":

@@ -115,6 +115,12 @@ class Run:
                 out[name] = (v.model_dump(), digest(v.model_dump()))
         return out
 
+    def display_path(self, path: str) -> str:
+        """A program's path as users read it: relative to the workflow's directory (absolute when
+        it lies elsewhere). Not part of any cache key: moving a project re-uses its cache."""
+        rel = os.path.relpath(path, Path(self.base).resolve())
+        return path if Path(rel).parts[0] == ".." else rel
+
     def params_for(self, stage: Stage, part: Partition) -> dict:
         params = self.wf.params(stage.params, part.tool_t, self.base)
         used = getattr(stage.load(), "used_params", None)   # values a stage uses only under a switch
@@ -125,7 +131,8 @@ class Run:
         base = name.partition("@")[0]
         if self.graph.sources.get(base) == "partition":
             return ([part.program_id, part.sha256],
-                    ("value", {"path": part.path, "sha256": part.sha256, "program_id": part.program_id}))
+                    ("value", {"path": part.path, "sha256": part.sha256, "program_id": part.program_id,
+                               "name": self.display_path(part.path)}))
         if base in self._static:
             value, fp = self._static[base]
             return fp, ("value", value)

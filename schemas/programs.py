@@ -3,7 +3,7 @@ import pyarrow as pa
 # One row per NC program. status: ok | failed. message: "file:line: what and why" when failed.
 SCHEMA = pa.schema([
     pa.field("program_id", pa.string(), nullable=False),
-    pa.field("path", pa.string(), nullable=False),
+    pa.field("path", pa.string(), nullable=False),       # the program file, relative to the workflow
     pa.field("sha256", pa.string(), nullable=False),
     pa.field("tool", pa.int32()),             # T number of the cutter (null when none was called)
     pa.field("n_lines", pa.int32(), nullable=False),

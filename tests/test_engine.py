@@ -231,10 +231,16 @@ BROKEN = {
     "bad_arc.nc": b"G90 G21\nT1 M6\nS9000 M3\nG0 X0 Y0 Z5\nG1 Z0 F200\nG2 X10 Y0 I3 J0\n",
     "no_feed.nc": b"G90 G21\nT1 M6\nS9000 M3\nG0 X0 Y0 Z5\nG1 Z0\n",
     "junk.nc": bytes(range(256)) * 4,
+    "prose.nc": b"G90 G21\nT1 M6\nThis program was checked by Tanaka\nS9000 M3\nG0 X0 Y0 Z5 A30\nG1 Z0 F200 G66\nThe end\n",
 }
 EXPECT = {"truncated.nc": ":", "garbage.nc": ":6: unexpected character '@'", "unknown_g.nc": ":6: unknown or unsupported G code G66",
           "bad_arc.nc": ":6: arc radius inconsistent", "no_feed.nc": ":5: cutting move without a feed",
-          "junk.nc": ":1: binary data"}
+          "junk.nc": ":1: binary data", "prose.nc": ":3: unrecognised word 'This' at column 1"}
+# every problem of a broken program: (line, column, what); column None: the whole block
+ALL_PROBLEMS = {"prose.nc": [(3, 1, "unrecognised word 'This'"), (5, 13, "rotary axis"),
+                             (6, 12, "unknown or unsupported G code G66"), (7, 1, "unrecognised word 'The'")],
+                "garbage.nc": [(6, c, "unexpected character '@'") for c in (1, 2, 3)] + [(6, 5, "unrecognised word 'not'")]
+                + [(6, c, "unexpected character '@'") for c in (16, 17, 18)]}
 
 
 def test_broken_programs_listed_failed_valid_one_processed(tmp_path):
@@ -250,8 +256,19 @@ def test_broken_programs_listed_failed_valid_one_processed(tmp_path):
     for name, what in EXPECT.items():
         row = progs.loc[name[:-3]]
         assert row.status == "failed"
-        assert row.message.startswith(str(tmp_path / "nc" / name) + ":") and what in row.message, row.message
+        assert row.message.startswith(f"nc/{name}:") and what in row.message, row.message  # relative to the workflow
         assert row.message in out  # the CLI summary names every failure
+    problems = read_table(tmp_path / "out", "problems")
+    assert set(problems.program_id) == {n[:-3] for n in BROKEN}              # a row at least per failed program
+    for name, expected in ALL_PROBLEMS.items():
+        rows = problems[problems.program_id == name[:-3]].sort_values(["line", "column"])
+        assert len(rows) == len(expected), rows
+        for k, ((line, col, what), r) in enumerate(zip(expected, rows.itertuples())):
+            assert r.line == line and r.column == col and what in r.message and r.path == f"nc/{name}"
+            if k < 5:                                                         # the CLI lists the first five
+                assert any(s.strip().startswith(f"nc/{name}:{line}: {what}") and f"at column {col}" in s
+                           for s in out.splitlines()), (name, line, col)
+    assert "… 2 more in the problems table" in out                           # garbage.nc's 6th and 7th
     passes = read_table(tmp_path / "out", "passes")
     assert set(passes.program_id) == {"p00"}
     assert len(run_json(tmp_path / "out")["failures"]) == len(BROKEN)

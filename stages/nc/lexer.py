@@ -30,24 +30,55 @@ _UNSUPPORTED_CHAR = {
 }
 
 
+class ProgramError(InputError):
+    """A program that cannot be used, with every problem found: ``problems`` is a list of
+    (line, column or None, message), 1-based, in file order. ``str()`` is the first problem as
+    ``file:line: message at column c`` and how many more there are."""
+
+    def __init__(self, path: str, problems: list):
+        self.path, self.problems = path, problems
+        line, col, msg = problems[0]
+        more = len(problems) - 1
+        super().__init__(f"{path}:{line}: {where(msg, col)}"
+                         + (f" (and {more} more problem{'s' * (more > 1)})" if more else ""))
+
+
+def where(msg: str, col) -> str:
+    """A problem's message with its column after what was found ("what at column c: why")."""
+    if col is None:
+        return msg
+    what, sep, why = msg.partition(": ")
+    return f"{what} at column {col}{sep}{why}"
+
+
 class Problems:
-    """Collects (line index, message) and raises the earliest as ``file:line: message``."""
+    """Collects every problem of a program and raises them together as a :class:`ProgramError`.
+
+    The parser checks in phases (a later phase needs what an earlier one established), so the
+    problems raised are all those of the first phase that found any.
+    """
+
+    # a check that holds on many lines (a pasted text) lists this many of them
+    MAX_PER_CHECK = 50
 
     def __init__(self, path: str):
         self.path, self.items = path, []
 
-    def add_first(self, mask_or_idx, line_of, msg):
-        """Record the first line where ``mask`` holds; ``msg`` may be a callable(index) → str."""
+    def add(self, mask_or_idx, line_of, msg, col_of=None):
+        """Record every index where ``mask`` holds (or every index given), with the line
+        ``line_of[i]`` (0-based) and column ``col_of[i]`` (1-based; None: the whole block);
+        ``msg`` may be a callable(index) → str."""
         idx = np.flatnonzero(mask_or_idx) if getattr(mask_or_idx, "dtype", None) == bool else np.asarray(mask_or_idx)
-        if idx.size:
-            i = int(idx[0])
-            self.items.append((int(line_of[i]), msg(i) if callable(msg) else msg))
+        for i in idx[:self.MAX_PER_CHECK].tolist():
+            self.items.append((int(line_of[i]) + 1, None if col_of is None else int(col_of[i]),
+                               msg(i) if callable(msg) else msg))
 
-    def raise_if_any(self):
-        if self.items:
-            line, msg = min(self.items, key=lambda t: t[0])
-            more = len(self.items) - 1
-            raise InputError(f"{self.path}:{line + 1}: {msg}" + (f" (and {more} more problem{'s' * (more > 1)})" if more else ""))
+    def raise_if_any(self, since: int = 0):
+        """Raise every problem so far if there are more than ``since`` (problems that later
+        checks can live with, counted before them)."""
+        if len(self.items) > since:
+            items = sorted(set(self.items), key=lambda t: (t[0], t[1] or 0, t[2]))
+            raise ProgramError(self.path, items)
 
 
 def ffill(values: np.ndarray, initial=np.nan) -> np.ndarray:
@@ -100,7 +131,7 @@ UPPER[ord("a"):ord("z") + 1] -= 32
 _POW10 = 10.0 ** np.arange(20)
 
 
-def tokenize(data: bytes, path: str):
+def tokenize(data: bytes, path: str, err: Problems | None = None):
     """Split a program into words.
 
     Returns
@@ -109,8 +140,17 @@ def tokenize(data: bytes, path: str):
     values : (w,) float64 values
     w_line : (w,) int line index (0-based) of each word
     n_lines : int
+    w_col : (w,) int column (1-based, in bytes) of each word's address letter
+
+    ``err`` collects the problems (a new one when None): a line of prose is left out of the words
+    and recorded there, and the caller goes on checking the other lines before it raises.
+
+    Raises
+    ------
+    ProgramError
+        with every problem of the first checking phase that found any (line and column each).
     """
-    err = Problems(path)
+    err = Problems(path) if err is None else err
     raw = np.frombuffer(data, dtype=np.uint8)
     if raw.size == 0:
         raise InputError(f"{path}:1: empty file")
@@ -119,23 +159,25 @@ def tokenize(data: bytes, path: str):
     # 0-based line of every byte that is not itself a newline (errors and code never are)
     line_of = np.cumsum(is_nl, dtype=np.int32)
     n_lines = int(line_of[-1]) + (0 if is_nl[-1] else 1)
+    line_start = np.concatenate(([0], np.flatnonzero(is_nl) + 1))
+    col_of = np.arange(raw.size) - line_start[line_of] + 1
 
     ctrl = cls == CTRL
     if ctrl.any():
-        def _col(i):
-            return i - (np.flatnonzero(is_nl[:i])[-1] + 1 if is_nl[:i].any() else 0)
-        err.add_first(ctrl, line_of, lambda i: f"binary data (byte 0x{raw[i]:02x} at column {_col(i) + 1}): not a text NC program")
+        err.add(ctrl, line_of, lambda i: f"binary data (byte 0x{raw[i]:02x}): not a text NC program", col_of)
         err.raise_if_any()
 
     # comments: ( ... ) closed on the same line, and ; to the end of the line outside parentheses
     opens, closes = cls == OPEN, cls == CLOSE
     comment = None
     if opens.any() or closes.any():
-        depth = np.cumsum(opens, dtype=np.int32) - np.cumsum(closes, dtype=np.int32)
-        err.add_first(depth < 0, line_of, "')' without '('")
-        at_eol = np.concatenate((depth[is_nl], depth[-1:]))
-        err.add_first(at_eol != 0, np.arange(at_eol.size), "unbalanced parentheses: comment not closed on its line")
-        err.raise_if_any()
+        # depth within each line: a comment not closed on its line ends there (and is a problem)
+        net = np.cumsum(opens.astype(np.int32) - closes)
+        depth = net - np.concatenate(([0], net[is_nl]))[line_of]
+        err.add(closes & (depth < 0) & (np.concatenate(([0], depth[:-1])) == 0), line_of, "')' without '('", col_of)
+        last = np.concatenate((np.flatnonzero(is_nl) - 1, [raw.size - 1]))
+        open_at_eol = (depth[np.maximum(last, 0)] > 0) & (last >= np.concatenate(([0], np.flatnonzero(is_nl) + 1)))
+        err.add(open_at_eol, np.arange(open_at_eol.size), "unbalanced parentheses: comment not closed on its line")
         comment = (depth > 0) | closes
     semi = cls == SEMI
     if comment is not None:
@@ -157,20 +199,41 @@ def tokenize(data: bytes, path: str):
     if pct.any():
         keep = ~np.isin(ln, ln[first_in_line & pct])
         pos, ln, first_in_line = pos[keep], ln[keep], first_in_line[keep]
-        err.add_first(raw[pos] == 37, ln, "'%' inside a block")
+        err.add(raw[pos] == 37, ln, "'%' inside a block", col_of[pos])
     ch, kind = UPPER[raw[pos]], cls[pos]
-    is_letter = kind == LETTER
     bad = (kind != LETTER) & (kind != NUM)
-    if bad.any():
-        def _bad_char_msg(i):
-            c = chr(ch[i]) if ch[i] < 128 else f"byte 0x{ch[i]:02x}"
-            return _UNSUPPORTED_CHAR.get(c, f"unexpected character {c!r} outside a comment")
-        err.add_first(bad, ln, _bad_char_msg)
+
+    def _bad_char_msg(i):
+        c = chr(ch[i]) if ch[i] < 128 else f"byte 0x{ch[i]:02x}"
+        return _UNSUPPORTED_CHAR.get(c, f"unexpected character {c!r} outside a comment")
+    # a line of prose (two letters in a row: no address takes a letter for its value) is one
+    # problem, the word it starts with (and its odd characters), not one problem per letter
+    letters_raw = (cls == LETTER) & code
+    run2 = np.flatnonzero(letters_raw[:-1] & letters_raw[1:] & ~np.concatenate(([False], letters_raw[:-2])))
+    if run2.size:
+        prose_first = run2[np.concatenate(([True], line_of[run2][1:] != line_of[run2][:-1]))]
+
+        def _word(i):
+            end = i
+            while end < raw.size and letters_raw[end]:
+                end += 1
+            return f"unrecognised word {bytes(raw[i:end]).decode('ascii')!r}: an address letter takes a number; text belongs in a comment ( )"
+        err.add(prose_first, line_of, _word, col_of)
+        prose = np.isin(ln, line_of[prose_first])
+        err.add(bad & prose, ln, _bad_char_msg, col_of[pos])
+        keep = ~prose
+        pos, ln, first_in_line, ch, kind, bad = (a[keep] for a in (pos, ln, first_in_line, ch, kind, bad))
+    is_letter = kind == LETTER
+    col = col_of[pos]
     for letter, why in _UNSUPPORTED_LETTER.items():
-        err.add_first(ch == ord(letter), ln, why)
+        err.add(ch == ord(letter), ln, why, col)
+    # comments closed at the end of their line, prose lines left out, unsupported axes read as
+    # words the reader ignores: the words can be read and checked on
+    settled = len(err.items)
+    err.add(bad, ln, _bad_char_msg, col)
     # every block starts with an address letter
-    err.add_first(first_in_line & ~is_letter, ln, "number without an address letter")
-    err.raise_if_any()
+    err.add(first_in_line & ~is_letter, ln, "number without an address letter", col)
+    err.raise_if_any(settled)
 
     starts = np.flatnonzero(is_letter)
     ends = np.empty_like(starts)
@@ -180,14 +243,15 @@ def tokenize(data: bytes, path: str):
     vlen = ends - starts - 1
     letters = ch[starts]
     w_line = ln[starts]
-    err.add_first(vlen == 0, w_line, lambda i: f"address {chr(letters[i])} without a value")
-    err.add_first(vlen > 15, w_line, lambda i: f"value of {chr(letters[i])} is too long")
-    err.raise_if_any()
-    values = numbers(ch, starts + 1, vlen, letters, w_line, err)
-    return letters, values, w_line, n_lines
+    w_col = col[starts]
+    err.add(vlen == 0, w_line, lambda i: f"address {chr(letters[i])} without a value", w_col)
+    err.add(vlen > 15, w_line, lambda i: f"value of {chr(letters[i])} is too long", w_col)
+    err.raise_if_any(settled)
+    values = numbers(ch, starts + 1, vlen, letters, w_line, err, w_col, settled)
+    return letters, values, w_line, n_lines, w_col
 
 
-def numbers(ch, start, length, letters, w_line, err):
+def numbers(ch, start, length, letters, w_line, err, w_col=None, settled=0):
     """Convert the value characters of every word to float, vectorised and exactly.
 
     Horner's rule over the character columns builds an integer mantissa (≤ 15 digits, exact in
@@ -216,7 +280,7 @@ def numbers(ch, start, length, letters, w_line, err):
     def _msg(i):
         text = bytes(ch[start[i]:start[i] + length[i]]).decode()
         return f"malformed number {text!r} for address {chr(letters[i])}"
-    err.add_first(badnum, w_line, _msg)
-    err.raise_if_any()
+    err.add(badnum, w_line, _msg, w_col)
+    err.raise_if_any(settled)
     neg = ch[start] == 45
     return np.where(neg, -mant, mant) / _POW10[decimals]

@@ -63,37 +63,37 @@ def parse_program(data: bytes, path: str, program_id: str) -> tuple[pa.Table, di
 
     Raises InputError(``path:line: ...``) for anything unsupported or inconsistent.
     """
-    letters, values, w_line, n_lines = tokenize(data, path)
-    if letters.size == 0:
-        raise InputError(f"{path}:1: no NC blocks in the file (only comments or blank lines)")
     err = Problems(path)
+    letters, values, w_line, n_lines, w_col = tokenize(data, path, err)
+    if letters.size == 0:
+        err.raise_if_any()
+        raise InputError(f"{path}:1: no NC blocks in the file (only comments or blank lines)")
     code_lines = w_line[np.concatenate(([True], w_line[1:] != w_line[:-1]))]  # w_line is sorted
     n_blocks = int(code_lines.size)
 
     # --- G words -> modal groups ----------------------------------------------------------------
     is_g = letters == ord("G")
     g10 = np.round(values[is_g] * 10).astype(np.int64)
-    g_line = w_line[is_g]
+    g_line, g_col = w_line[is_g], w_col[is_g]
     known = np.isin(g10, list(_G_GROUP) + list(_G_NOOP))
     rej = np.isin(g10, list(_G_REJECT))
-    err.add_first(rej, g_line, lambda i: _G_REJECT[int(g10[i])])
-    err.add_first(~known & ~rej, g_line, lambda i: f"unknown or unsupported G code G{_fmt_code(g10[i])}")
+    err.add(rej, g_line, lambda i: _G_REJECT[int(g10[i])], g_col)
+    err.add(~known & ~rej, g_line, lambda i: f"unknown or unsupported G code G{_fmt_code(g10[i])}", g_col)
     is_m = letters == ord("M")
     m = values[is_m]
     m_int = m.astype(np.int64)
-    m_line = w_line[is_m]
-    err.add_first(np.isin(m_int, list(_M_REJECT)), m_line, lambda i: _M_REJECT[int(m_int[i])])
-    err.add_first(~np.isin(m_int, list(_M_OK) + list(_M_REJECT)) | (m != m_int), m_line,
-                  lambda i: f"unknown or unsupported M code M{m[i]:g} (supported: M0 M1 M2 M3 M4 M5 M6 M8 M9 M30)")
+    m_line, m_col = w_line[is_m], w_col[is_m]
+    err.add(np.isin(m_int, list(_M_REJECT)), m_line, lambda i: _M_REJECT[int(m_int[i])], m_col)
+    err.add(~np.isin(m_int, list(_M_OK) + list(_M_REJECT)) | (m != m_int), m_line,
+            lambda i: f"unknown or unsupported M code M{m[i]:g} (supported: M0 M1 M2 M3 M4 M5 M6 M8 M9 M30)", m_col)
     err.raise_if_any()
 
     def group_col(name):
         sel = np.isin(g10, [g for g, grp in _G_GROUP.items() if grp == name])
         col = np.full(n_lines, np.nan)
         ln, gv = g_line[sel], g10[sel]
-        dup = np.flatnonzero(np.diff(ln) == 0)
-        if dup.size:
-            err.add_first(np.array([dup[0]]), ln, f"two {name} G codes in one block")
+        dup = np.flatnonzero(np.diff(ln) == 0) + 1
+        err.add(dup, ln, f"two {name} G codes in one block", g_col[sel])
         col[ln] = gv / 10.0
         return col
 
@@ -104,9 +104,8 @@ def parse_program(data: bytes, path: str, program_id: str) -> tuple[pa.Table, di
     for a in _ADDR:
         sel = letters == ord(a)
         ln = w_line[sel]
-        dup = np.flatnonzero(np.diff(ln) == 0)
-        if dup.size:
-            err.add_first(np.array([dup[0]]), ln, f"address {a} appears twice in one block")
+        dup = np.flatnonzero(np.diff(ln) == 0) + 1
+        err.add(dup, ln, f"address {a} appears twice in one block", w_col[sel])
         col = np.full(n_lines, np.nan)
         col[ln] = values[sel]
         cols[a] = col
@@ -114,13 +113,13 @@ def parse_program(data: bytes, path: str, program_id: str) -> tuple[pa.Table, di
     has = {a: ~np.isnan(c) for a, c in cols.items()}
     for a in "NTOHD":
         v = cols[a]
-        err.add_first(has[a] & ((v != np.round(v)) | (v < 0) | (v > 2**31 - 1)), np.arange(n_lines),
+        err.add(has[a] & ((v != np.round(v)) | (v < 0) | (v > 2**31 - 1)), np.arange(n_lines),
                       f"{a} must be a whole number between 0 and 2147483647")
-    err.add_first(has["F"] & (cols["F"] < 0), np.arange(n_lines), "negative feed")
-    err.add_first(has["S"] & (cols["S"] < 0), np.arange(n_lines), "negative spindle speed")
-    err.add_first(has["Q"] & ~np.isin(np.arange(n_lines), g_line[g10 == 51]), np.arange(n_lines),
+    err.add(has["F"] & (cols["F"] < 0), np.arange(n_lines), "negative feed")
+    err.add(has["S"] & (cols["S"] < 0), np.arange(n_lines), "negative spindle speed")
+    err.add(has["Q"] & ~np.isin(np.arange(n_lines), g_line[g10 == 51]), np.arange(n_lines),
                   "Q words are only accepted with G5.1 (canned-cycle Q is not supported)")
-    err.add_first(has["P"] & np.isnan(dwell_g), np.arange(n_lines), "P words are only accepted with G4 (dwell)")
+    err.add(has["P"] & np.isnan(dwell_g), np.arange(n_lines), "P words are only accepted with G4 (dwell)")
 
     # M codes per line
     def m_flag(codes):
@@ -154,19 +153,19 @@ def parse_program(data: bytes, path: str, program_id: str) -> tuple[pa.Table, di
     full_circle = arc_words & ~moves & np.isin(motion, (2.0, 3.0)) & ~is_dwell
     moves |= full_circle
     moves &= live
-    err.add_first(moves & np.isnan(motion), np.arange(n_lines), "coordinates without a motion mode (no G0/G1/G2/G3 before)")
-    err.add_first(arc_words & ~np.isin(motion, (2.0, 3.0)) & ~is_dwell & live, np.arange(n_lines),
+    err.add(moves & np.isnan(motion), np.arange(n_lines), "coordinates without a motion mode (no G0/G1/G2/G3 before)")
+    err.add(arc_words & ~np.isin(motion, (2.0, 3.0)) & ~is_dwell & live, np.arange(n_lines),
                   "I/J/K/R words outside an arc block (G2/G3)")
     cutting = moves & (motion >= 1)
-    err.add_first(cutting & np.isnan(feed), np.arange(n_lines), "cutting move without a feed: no F word before the first G1/G2/G3")
-    err.add_first(cutting & (feed <= 0), np.arange(n_lines), "cutting move with feed F0")
-    err.add_first(cutting & ((sp_state == 0) | (speed <= 0)), np.arange(n_lines),
+    err.add(cutting & np.isnan(feed), np.arange(n_lines), "cutting move without a feed: no F word before the first G1/G2/G3")
+    err.add(cutting & (feed <= 0), np.arange(n_lines), "cutting move with feed F0")
+    err.add(cutting & ((sp_state == 0) | (speed <= 0)), np.arange(n_lines),
                   "cutting move with the spindle stopped (no S and M3/M4 before it)")
     # one tool per program (DESIGN §4): the tool that cuts
     tools_cutting = np.unique(tool_in[cutting & ~np.isnan(tool_in)])
     if tools_cutting.size > 1:
         first_second = np.flatnonzero(cutting & (tool_in == tools_cutting[1]))
-        err.add_first(first_second, np.arange(n_lines),
+        err.add(first_second, np.arange(n_lines),
                       f"program cuts with several tools (T{int(tools_cutting[0])}, T{int(tools_cutting[1])}): one tool per program")
     err.raise_if_any()
 
@@ -204,11 +203,11 @@ def parse_program(data: bytes, path: str, program_id: str) -> tuple[pa.Table, di
         # a move starts where the previous one ended: if the axis was first set on this very block
         # or later, the cutting move starts from an unknown position
         bad_cut = cutting[line_idx] & (line_idx <= known_from[a])
-        err.add_first(bad_cut, line_idx, f"cutting move from an unknown position: {a} was never set before it")
+        err.add(bad_cut, line_idx, f"cutting move from an unknown position: {a} was never set before it")
     err.raise_if_any()
     if np.isnan(ends).any():
         rows = np.flatnonzero(np.isnan(ends).any(1))
-        err.add_first(rows, line_idx, "move on an axis that is never set")
+        err.add(rows, line_idx, "move on an axis that is never set")
         err.raise_if_any()
 
     mot = np.where(is_dwell[line_idx], DWELL, motion[line_idx]).astype(np.int8)
@@ -225,8 +224,8 @@ def parse_program(data: bytes, path: str, program_id: str) -> tuple[pa.Table, di
     if dl.any():
         li = line_idx[dl]
         dwell_s[dl] = np.where(has["P"][li], cols["P"][li] / 1000.0, np.where(has["X"][li], cols["X"][li], np.nan))
-        err.add_first(np.isnan(dwell_s) & dl, line_idx, "G4 dwell without P (ms) or X (s)")
-        err.add_first((dwell_s < 0) & dl, line_idx, "negative dwell time")
+        err.add(np.isnan(dwell_s) & dl, line_idx, "G4 dwell without P (ms) or X (s)")
+        err.add((dwell_s < 0) & dl, line_idx, "negative dwell time")
         err.raise_if_any()
 
     block_no = np.searchsorted(code_lines, line_idx) + 1
@@ -283,9 +282,9 @@ def _arc_centres(ai, line_idx, starts, ends, plane, mot, cols, has, scale, err):
         off_b = cols[_OFFSET_LETTER[a1]][lrow] * sc[sel]
         has_ij = has[_OFFSET_LETTER[a0]][lrow] | has[_OFFSET_LETTER[a1]][lrow]
         wrong_plane = has[_OFFSET_LETTER[an]][lrow] & ~has_ij
-        err.add_first(wrong_plane, lrow, f"arc centre word {_OFFSET_LETTER[an]} does not belong to plane G{pl}")
-        err.add_first(has_r & has_ij, lrow, "arc with both R and I/J/K: ambiguous")
-        err.add_first(~has_r & ~has_ij, lrow, "arc (G2/G3) without a centre (I/J/K) or radius (R)")
+        err.add(wrong_plane, lrow, f"arc centre word {_OFFSET_LETTER[an]} does not belong to plane G{pl}")
+        err.add(has_r & has_ij, lrow, "arc with both R and I/J/K: ambiguous")
+        err.add(~has_r & ~has_ij, lrow, "arc (G2/G3) without a centre (I/J/K) or radius (R)")
         sa, sb = s[sel][:, a0], s[sel][:, a1]
         ea, eb = e[sel][:, a0], e[sel][:, a1]
         ca = sa + np.nan_to_num(off_a)
@@ -296,8 +295,8 @@ def _arc_centres(ai, line_idx, starts, ends, plane, mot, cols, has, scale, err):
             dx, dy = ea - sa, eb - sb
             d = np.hypot(dx, dy)
             rr = np.abs(r)
-            err.add_first(has_r & (d < 1e-9), lrow, "full circle with R is undefined: use I/J/K")
-            err.add_first(has_r & (d > 2 * rr + 1e-3), lrow,
+            err.add(has_r & (d < 1e-9), lrow, "full circle with R is undefined: use I/J/K")
+            err.add(has_r & (d > 2 * rr + 1e-3), lrow,
                           lambda i: f"arc radius R{r[i]:g} too small for a chord of {d[i]:.4f} mm")
             h = np.sqrt(np.maximum(rr ** 2 - (d / 2) ** 2, 0.0))
             ccw = mot[ai][sel] == ARC_CCW
@@ -312,13 +311,13 @@ def _arc_centres(ai, line_idx, starts, ends, plane, mot, cols, has, scale, err):
             r0 = np.hypot(sa - ca, sb - cb)
             r1 = np.hypot(ea - ca, eb - cb)
             bad = np.abs(r0 - r1) > ARC_RADIUS_TOL_MM + 1e-4 * np.maximum(r0, r1)
-            err.add_first(bad, lrow, lambda i: f"arc radius inconsistent: {r0[i]:.4f} mm at the start, {r1[i]:.4f} mm at the end")
-            err.add_first(r0 < 1e-6, lrow, "arc of zero radius")
+            err.add(bad, lrow, lambda i: f"arc radius inconsistent: {r0[i]:.4f} mm at the start, {r1[i]:.4f} mm at the end")
+            err.add(r0 < 1e-6, lrow, "arc of zero radius")
         if has_r.any():
             r0 = np.hypot(sa - ca, sb - cb)
             r1 = np.hypot(ea - ca, eb - cb)
             bad = ~has_r & (np.abs(r0 - r1) > ARC_RADIUS_TOL_MM + 1e-4 * np.maximum(r0, r1))
-            err.add_first(bad, lrow, lambda i: f"arc radius inconsistent: {r0[i]:.4f} mm at the start, {r1[i]:.4f} mm at the end")
+            err.add(bad, lrow, lambda i: f"arc radius inconsistent: {r0[i]:.4f} mm at the start, {r1[i]:.4f} mm at the end")
         c = np.empty((rows.size, 3))
         c[:, a0], c[:, a1] = ca, cb
         c[:, an] = s[sel][:, an]  # centre's normal coordinate: that of the start (helix rises from there)
