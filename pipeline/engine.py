@@ -115,6 +115,10 @@ class Run:
                 out[name] = (v.model_dump(), digest(v.model_dump()))
         return out
 
+    def source(self, name: str):
+        """The value a workflow-level source hands to stages (a resolved file path), None if unset."""
+        return self._static.get(name, (None,))[0]
+
     def display_path(self, path: str) -> str:
         """A program's path as users read it: relative to the workflow's directory (absolute when
         it lies elsewhere). Not part of any cache key: moving a project re-uses its cache."""

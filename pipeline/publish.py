@@ -22,9 +22,12 @@ def publish(run, reports: list, failures: list, wall_s: float) -> dict:
     tables = materialize(run)
     files = write_files(run, failures)
     from pipeline.report import write_report
+    kept = ({p.program_id: kept_summary(p.rounds, run.kept_round(p), p.stalled) for p in run.parts if p.rounds}
+            if run.repeat is not None else {})
+    nominal = run.source("nominal")
     report, report_error = None, None
     try:
-        report = write_report(run.out, run.wf.name)
+        report = write_report(run.out, run.wf.name, nominal=nominal, kept=kept)
     except Exception as e:  # a picture never fails a run: the tables and programs are what it is for
         report_error = {"message": f"report: {type(e).__name__}: {e}", "traceback": traceback.format_exc()}
     from pipeline.duckdb_views import write_views
@@ -37,8 +40,7 @@ def publish(run, reports: list, failures: list, wall_s: float) -> dict:
     summary["dashboard"] = getattr(run, "dashboard", None)
     if run.repeat is not None:
         summary["rounds"] = {p.program_id: p.rounds for p in run.parts if p.rounds}
-        summary["kept"] = {p.program_id: kept_summary(p.rounds, run.kept_round(p), p.stalled)
-                           for p in run.parts if p.rounds}
+        summary["kept"] = kept
     (run.out / "run.json").write_text(json.dumps(summary, indent=2, default=str))
     return summary
 

@@ -1,10 +1,11 @@
 """Run report: ``<out>/report/index.html`` with pictures of the predicted error (issue 4).
 
-Reads the run's tables (never the cache), so it can be re-made for any output directory:
-``pipeline report WORKFLOW``. Pictures: the predicted error at every generating point over the
-mould surface (top view and a side view, diverging colour map centred on zero: red = material left,
-blue = overcut), its histogram, error against contact angle, and the worst passes with their program
-line so a production engineer can open the NC file at the right place.
+Reads the run's tables (never the cache). The page: warnings, a table per program (passes,
+machining time, predicted error, the corrected program and its predicted deviation against the
+original's), the predicted error as a deviation map on the design model (top and oblique view,
+symmetric diverging scale: red = material left, blue = overcut; :mod:`pipeline.deviation_map`) and
+as ``deviation.ply``, its histogram, error against contact angle, and the worst passes with their
+NC line so a production engineer can open the file at the right place.
 """
 from __future__ import annotations
 
@@ -31,7 +32,8 @@ def error_points(out: Path) -> pd.DataFrame | None:
         return None
     df = err.merge(gen[["program_id", "pass_id", "gen_x_mm", "gen_y_mm", "gen_z_mm", "rotation_deg", "view"]],
                    on=["program_id", "pass_id"], how="left")
-    df = df.merge(passes[["program_id", "pass_id", "line_no", "block_no", "t_start_s"]], on=["program_id", "pass_id"], how="left")
+    df = df.merge(passes[["program_id", "pass_id", "line_no", "block_no", "t_start_s", "x0_mm", "y0_mm", "z0_mm",
+                          "x1_mm", "y1_mm", "z1_mm"]], on=["program_id", "pass_id"], how="left")
     if progs is not None:
         df = df.merge(progs[["program_id", "path"]], on="program_id", how="left")
     return df
@@ -65,8 +67,19 @@ are not predicted) or the run stopped before <code>errors</code>.</p>""")
     return path
 
 
-def write_report(out: str | Path, title: str = "run") -> Path | None:
-    """Write ``<out>/report/`` (PNG pictures + index.html). Returns the HTML path, None before passes."""
+def write_report(out: str | Path, title: str = "run", nominal: str | Path | None = None,
+                 kept: dict | None = None) -> Path | None:
+    """Write ``<out>/report/`` (pictures, the coloured mesh, index.html). Returns the HTML path,
+    None before passes.
+
+    Parameters
+    ----------
+    out : the run's output directory (its ``tables/`` are read)
+    title : the workflow's name
+    nominal : the design model; with it the error is drawn on the part and written as
+        ``deviation.ply``, else drawn at the generating points
+    kept : ``run.json``'s ``kept`` (program → the correction written and its predicted deviation)
+    """
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -79,19 +92,13 @@ def write_report(out: str | Path, title: str = "run") -> Path | None:
     rep.mkdir(parents=True, exist_ok=True)
     e = df.err_um.to_numpy()
     lim = max(float(np.nanpercentile(np.abs(e), 99)), 1e-3)
-    cmap = "coolwarm"
+    label = f"predicted error, µm (scale ±{lim:.1f}: red = material left, blue = overcut)"
 
-    fig, axes = plt.subplots(1, 2, figsize=(14, 5.5), gridspec_kw={"width_ratios": [1.3, 1]})
-    order = np.argsort(np.abs(e))  # largest errors drawn last, on top
-    sc = axes[0].scatter(df.gen_x_mm.iloc[order], df.gen_y_mm.iloc[order], c=e[order], s=3, cmap=cmap, vmin=-lim, vmax=lim)
-    axes[0].set(aspect="equal", xlabel="X mm", ylabel="Y mm", title="Predicted error, top view (generating points)")
-    _span(axes[0], df.gen_x_mm, df.gen_y_mm)
-    axes[1].scatter(df.gen_x_mm.iloc[order], df.gen_z_mm.iloc[order], c=e[order], s=3, cmap=cmap, vmin=-lim, vmax=lim)
-    axes[1].set(xlabel="X mm", ylabel="Z mm", title="Side view (looking along +Y)")
-    _span(axes[1], df.gen_x_mm, df.gen_z_mm)
-    fig.colorbar(sc, ax=axes, label="err_um  (+ material left, − overcut)", shrink=0.85)
-    fig.savefig(rep / "error_map.png", dpi=110)
-    plt.close(fig)
+    pictures = []
+    if nominal is not None and Path(nominal).is_file():
+        pictures.append(_deviation_map(rep, df, Path(nominal), lim, label))
+    else:
+        pictures.append(_point_map(rep, df, lim, label))
 
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.2))
     axes[0].hist(e, bins=80, color="#4477aa")
@@ -101,6 +108,7 @@ def write_report(out: str | Path, title: str = "run") -> Path | None:
     fig.tight_layout()
     fig.savefig(rep / "error_hist.png", dpi=110)
     plt.close(fig)
+    pictures.append("error_hist.png")
 
     worst = df.reindex(df.err_um.abs().sort_values(ascending=False).index).head(25)
     rows = "".join(
@@ -110,15 +118,132 @@ def write_report(out: str | Path, title: str = "run") -> Path | None:
         for r in worst.itertuples())
     stats = (f"{len(df)} predicted passes; err_um mean {np.nanmean(e):+.2f}, RMS {np.sqrt(np.nanmean(e ** 2)):.2f}, "
              f"P95 |err| {np.nanpercentile(np.abs(e), 95):.2f}, max |err| {np.nanmax(np.abs(e)):.2f} µm")
+    programs, warnings = _programs(out, df, kept or {})
+    imgs = "".join(f'<img src="{p}" alt="{p}" style="max-width:100%">' for p in pictures)
+    ply = ('<p>The coloured part: <a href="deviation.ply">deviation.ply</a> (vertex colours and '
+           '<code>err_um</code> per vertex; MeshLab, ParaView). Grey: no predicted pass there '
+           '(not cut, or pruned: contact angle below <code>prune.min_contact_deg</code>).</p>'
+           if (rep / "deviation.ply").is_file() else "")
+    warn = ("<h2>Warnings</h2><ul>" + "".join(f"<li>{w}</li>" for w in warnings) + "</ul>") if warnings else ""
     page = f"""<!doctype html><meta charset="utf-8"><title>{html.escape(title)} — predicted machining error</title>
 <style>body{{font-family:sans-serif;margin:2em;max-width:1400px}}td,th{{padding:2px 8px;text-align:right}}
-table{{border-collapse:collapse}}tr:nth-child(even){{background:#f3f3f3}}</style>
+table{{border-collapse:collapse}}tr:nth-child(even){{background:#f3f3f3}}#broken{{color:#b00}}</style>
 <h1>{html.escape(title)}: predicted machining error</h1>
+<p id="broken"></p>
 <p>{stats}. Sign: positive = material left (undercut), negative = overcut, along the surface normal.</p>
-<img src="error_map.png" style="max-width:100%"><img src="error_hist.png" style="max-width:100%">
+{warn}
+<h2>Programs</h2>
+<table><tr><th>program</th><th>status</th><th>passes</th><th>cutting</th><th>predicted</th><th>machining time</th>
+<th>RMS err µm</th><th>max |err| µm</th><th>corrected program</th><th>predicted deviation RMS µm, original → corrected</th>
+<th>vertices at the move limit</th></tr>{programs}</table>
+{imgs}{ply}
 <h2>Worst passes</h2>
 <table><tr><th>program</th><th>pass</th><th>NC line</th><th>err µm</th><th>deflection µm</th><th>shape µm</th>
-<th>q deg</th><th>generating point (mm)</th></tr>{rows}</table>"""
+<th>q deg</th><th>generating point (mm)</th></tr>{rows}</table>
+<script>
+// every picture must load: a broken one is named at the top of the page (and counted for tests)
+window.addEventListener("load", () => {{
+  const imgs = [...document.images], bad = imgs.filter(i => !(i.complete && i.naturalWidth > 0));
+  document.body.dataset.images = `${{imgs.length - bad.length}}/${{imgs.length}}`;
+  if (bad.length) document.getElementById("broken").textContent =
+    "Pictures that did not load: " + bad.map(i => i.getAttribute("src")).join(", ");
+}});
+</script>"""
     path = rep / "index.html"
     path.write_text(page)
     return path
+
+
+def _point_map(rep: Path, df: pd.DataFrame, lim: float, label: str) -> str:
+    """The error at the generating points, top and side view (no design model given)."""
+    import matplotlib.pyplot as plt
+    e = df.err_um.to_numpy()
+    fig, axes = plt.subplots(1, 2, figsize=(14, 5.5), gridspec_kw={"width_ratios": [1.3, 1]})
+    order = np.argsort(np.abs(e))  # largest errors drawn last, on top
+    sc = axes[0].scatter(df.gen_x_mm.iloc[order], df.gen_y_mm.iloc[order], c=e[order], s=3, cmap="coolwarm",
+                         vmin=-lim, vmax=lim)
+    axes[0].set(aspect="equal", xlabel="X mm", ylabel="Y mm", title="Predicted error, top view (generating points)")
+    _span(axes[0], df.gen_x_mm, df.gen_y_mm)
+    axes[1].scatter(df.gen_x_mm.iloc[order], df.gen_z_mm.iloc[order], c=e[order], s=3, cmap="coolwarm",
+                    vmin=-lim, vmax=lim)
+    axes[1].set(xlabel="X mm", ylabel="Z mm", title="Side view (looking along +Y)")
+    _span(axes[1], df.gen_x_mm, df.gen_z_mm)
+    fig.colorbar(sc, ax=axes, label=label, shrink=0.85)
+    fig.savefig(rep / "error_map.png", dpi=110)
+    plt.close(fig)
+    return "error_map.png"
+
+
+def _deviation_map(rep: Path, df: pd.DataFrame, nominal: Path, lim: float, label: str) -> str:
+    """The error on the design model: ``error_map.png`` (top and oblique) and ``deviation.ply``."""
+    import matplotlib.pyplot as plt
+    import trimesh
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
+
+    from pipeline import deviation_map as dm
+    xyz, n, e = dm.surface_samples(df)
+    radius = max(dm.interpolation_radius(xyz), dm.EDGE_MM)
+    mesh = dm.refined_mesh(trimesh.load(nominal, force="mesh"), xyz, radius)
+    err = dm.vertex_errors(mesh.vertices, mesh.vertex_normals, xyz, n, e, radius)
+    fig, axes = plt.subplots(1, 2, figsize=(15, 6.2))
+    dm.draw_views({"top": axes[0], "oblique": axes[1]}, mesh, err, lim)
+    fig.colorbar(ScalarMappable(Normalize(-lim, lim), "coolwarm"), ax=axes, label=label, shrink=0.8)
+    fig.suptitle("Predicted error on the part (grey: no predicted pass)")
+    fig.savefig(rep / "error_map.png", dpi=110)
+    plt.close(fig)
+    dm.write_ply(rep / "deviation.ply", mesh, err, lim)
+    return "error_map.png"
+
+
+def _programs(out: Path, df: pd.DataFrame, kept: dict) -> tuple[str, list[str]]:
+    """Rows of the programs table and the warnings of the run."""
+    tables = out / "tables"
+    progs = _read(tables, "programs")
+    cut, cor = _read(tables, "cut_filter"), _read(tables, "corrected")
+    rows, warnings = [], []
+    if progs is None:
+        return "", warnings
+    for p in progs.sort_values("program_id").itertuples():
+        pid = p.program_id
+        esc = html.escape(str(pid))
+        if p.status != "ok":
+            warnings.append(f"{esc}: not predicted: {html.escape(p.message)} (every problem: the "
+                            f"<code>problems</code> table)")
+            rows.append(f"<tr><td>{esc}</td><td>failed</td>" + "<td></td>" * 9 + "</tr>")
+            continue
+        e = df.err_um[df.program_id == pid].to_numpy()
+        n_cut = int(cut.is_cutting[cut.program_id == pid].sum()) if cut is not None else 0
+        rms = f"{np.sqrt(np.mean(e ** 2)):.2f}" if e.size else ""
+        mx = f"{np.abs(e).max():.2f}" if e.size else ""
+        k = kept.get(pid)
+        if k is None:
+            written, dev = ("yes" if cor is not None and (cor.program_id == pid).any() else "no"), ""
+        elif k["kept_round"]:
+            written = f"round {k['kept_round']} of {k['rounds']}"
+            after = "not predicted" if k["kept_rms_dev_um"] is None else f"{k['kept_rms_dev_um']:.2f}"
+            dev = f"{k['first_rms_dev_um']:.2f} → {after}"
+        else:
+            written, dev = "no", f"{k['first_rms_dev_um']:.2f} → no round lowered it"
+            warnings.append(f"{esc}: no corrected program: no correction was predicted to deviate less than "
+                            "the program as written (a deflection that changes with the offset; lower the "
+                            "feed or the rest material there)")
+        clipped = ""
+        if cor is not None and (cor.program_id == pid).any():
+            c = cor[cor.program_id == pid]
+            clipped = f"{int(c.clipped.sum())} of {len(c)}"
+            if c.clipped.any():
+                warnings.append(f"{esc}: {int(c.clipped.sum())} vertices reached <code>correct.max_move_um</code>: "
+                                f"the error there is larger than a correction may move (NC lines "
+                                f"{', '.join(str(int(x)) for x in c.line_no[c.clipped].head(5))}"
+                                f"{', …' if c.clipped.sum() > 5 else ''})")
+        rows.append(f"<tr><td>{esc}</td><td>ok</td><td>{int(p.n_passes)}</td><td>{n_cut}</td><td>{e.size}</td>"
+                    f"<td>{_duration(p.duration_s)}</td><td>{rms}</td><td>{mx}</td><td>{written}</td>"
+                    f"<td>{dev}</td><td>{clipped}</td></tr>")
+    return "".join(rows), warnings
+
+
+def _duration(seconds: float) -> str:
+    """Machining time as h:mm:ss."""
+    s = int(round(float(seconds)))
+    return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}"
