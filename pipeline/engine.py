@@ -119,6 +119,10 @@ class Run:
         """The value a workflow-level source hands to stages (a resolved file path), None if unset."""
         return self._static.get(name, (None,))[0]
 
+    def fingerprint(self, name: str) -> str:
+        """The content fingerprint of a workflow-level source (a file's sha256)."""
+        return self._static.get(name, (None, "none"))[1]
+
     def display_path(self, path: str) -> str:
         """A program's path as users read it: relative to the workflow's directory (absolute when
         it lies elsewhere). Not part of any cache key: moving a project re-uses its cache."""
@@ -253,7 +257,7 @@ class Run:
         return {"round": rnd, **self.repeat.record(tables)}
 
     def kept_round(self, part: Partition) -> int:
-        """The round whose ``keep_last`` tables a partition publishes (0: none)."""
+        """The round whose ``kept_tables`` tables a partition publishes (0: none)."""
         if not part.rounds:
             return max(part.tables)
         return int(self.repeat.keep(part.rounds, part.stalled))

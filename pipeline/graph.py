@@ -57,7 +57,7 @@ class Repeat:
     paying, or ``max_rounds`` (a workflow key) rounds ran.
 
     ``record(tables) -> dict`` summarises each round for ``run.json`` from the tables it names in
-    ``record_inputs``; ``keep_last`` tables are published from the round ``keep(records, stalled)``
+    ``record_inputs``; ``kept_tables`` tables are published from the round ``keep(records, stalled)``
     names (0: not published), the others from the first (the prediction of the program as written).
     """
 
@@ -67,7 +67,7 @@ class Repeat:
     max_rounds: str
     record: Callable
     record_inputs: tuple
-    keep_last: tuple
+    kept_tables: tuple
     stalled: Callable = lambda records: False
     keep: Callable = lambda records, stalled: len(records)
 
@@ -106,7 +106,7 @@ def mould_graph() -> Graph:
     main = tuple(Stage.of(m) for m in (parse, split, scan, forces, deflection, errors, correct))
     rounds = Repeat(stages=(Stage.of(correct_blocks),) + main[1:], until=correct.converged,
                     until_table="corrected", max_rounds="correct.max_iter", record=correct.round_record,
-                    record_inputs=("errors", "corrected", "passes", "passes@first"), keep_last=("corrected",),
+                    record_inputs=("errors", "corrected", "passes", "passes@first"), kept_tables=("corrected",),
                     stalled=correct.stalled, keep=correct.kept_round)
     nc = Writer("nc", corrected_programs, inputs=("program_file", "blocks", "corrected", "errors"),
                 params=("correct",), directory="nc")

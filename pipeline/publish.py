@@ -3,11 +3,12 @@
 ``<out>/tables/<table>/<program_id>.parquet`` are hard links to cache entries (copies where links are
 impossible), rebuilt every run so they hold exactly this workflow's programs: each table from the
 last stage that wrote it in the first round (the prediction of the programs as written), the
-Repeat's ``keep_last`` tables from the round it keeps (:meth:`Run.kept_round`). The graph's writers then make their files (the
+Repeat's ``kept_tables`` tables from the round it keeps (:meth:`Run.kept_round`). The graph's writers then make their files (the
 corrected NC programs), each written to a temporary name and renamed.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
@@ -17,17 +18,27 @@ from pathlib import Path
 
 import pyarrow.parquet as pq
 
+from pipeline import deviation_map
+from pipeline import report as report_mod
+
 
 def publish(run, reports: list, failures: list, wall_s: float) -> dict:
     tables = materialize(run)
     files = write_files(run, failures)
-    from pipeline.report import write_report
     kept = ({p.program_id: kept_summary(p.rounds, run.kept_round(p), p.stalled) for p in run.parts if p.rounds}
             if run.repeat is not None else {})
     nominal = run.source("nominal")
     report, report_error = None, None
     try:
-        report = write_report(run.out, run.wf.name, nominal=nominal, kept=kept)
+        key = report_key(run, kept)
+        stamp = run.out / "report" / ".inputs"
+        if stamp.is_file() and stamp.read_text() == key and (run.out / "report" / "index.html").is_file():
+            report = run.out / "report" / "index.html"        # nothing it shows changed
+        else:
+            stamp.unlink(missing_ok=True)
+            report = report_mod.write_report(run.out, run.wf.name, nominal=nominal, kept=kept)
+            if report is not None:
+                stamp.write_text(key)
     except Exception as e:  # a picture never fails a run: the tables and programs are what it is for
         report_error = {"message": f"report: {type(e).__name__}: {e}", "traceback": traceback.format_exc()}
     from pipeline.duckdb_views import write_views
@@ -43,6 +54,16 @@ def publish(run, reports: list, failures: list, wall_s: float) -> dict:
         summary["kept"] = kept
     (run.out / "run.json").write_text(json.dumps(summary, indent=2, default=str))
     return summary
+
+
+def report_key(run, kept: dict) -> str:
+    """Digest of what the report shows: every published table's cache key, the kept corrections,
+    the design model and the report's own code."""
+    from pipeline.cache import digest
+    code = [hashlib.sha256(Path(m.__file__).read_bytes()).hexdigest() for m in (report_mod, deviation_map)]
+    return digest({"tables": {p.program_id: sorted(final_tables(run, p).items()) for p in run.parts},
+                   "failed": {p.program_id: p.failed for p in run.parts}, "kept": kept, "title": run.wf.name,
+                   "nominal": run.fingerprint("nominal"), "code": code})
 
 
 def kept_summary(records: list, kept: int, stalled: bool) -> dict:
@@ -61,7 +82,7 @@ def final_tables(run, part) -> dict:
     out = dict(part.tables[1])
     if run.repeat is not None:
         kept = run.kept_round(part)
-        for t in run.repeat.keep_last:
+        for t in run.repeat.kept_tables:
             out.pop(t, None)
             if kept and t in part.tables[kept]:
                 out[t] = part.tables[kept][t]

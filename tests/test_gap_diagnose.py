@@ -110,9 +110,11 @@ def test_detection_limit_of_wear_next_to_a_drift_is_the_collinear_remainder():
 
 def test_wear_inside_a_drift_is_reported_as_ambiguous():
     """A slow drift (4–7 µm RMS, mostly along the normals, τ 0.7–1.2 × the run) with a wear below its
-    stated detection limit (σ 0.5 µm): the diagnosis names the drift, says the wear cannot be told from it
-    (``ambiguous_with``) and that more wear than was machined could hide there; four times the
-    limit is named."""
+    stated detection limit (σ 0.5 µm): the diagnosis names the drift and no wear when there is none;
+    with half the limit of wear it names the drift and either says the wear cannot be told from it
+    (``ambiguous_with``) and that more wear than was machined could hide there, or names the wear (the
+    limit is what can hide, not what must: a noise draw can reveal less, seed 3864355843); four times
+    the limit is named."""
     seed, rng = fresh_rng()
     drift = _drift_along_z(rng, rng.uniform(4.0, 7.0), rng.uniform(0.7, 1.2) * brute_force_features()["duration_s"])
     unit = _unit_rms("tool_wear", {"rate_um_per_m": 1.0})
@@ -123,13 +125,17 @@ def test_wear_inside_a_drift_is_reported_as_ambiguous():
             eff["tool_wear"] = {"rate_um_per_m": wear_rms / unit}
         return diagnose(associated(signature(eff, 0.5, rng)))
     case = f"seed {seed}: drift {drift}"
-    lim = run(0.0)["detection_limits"]["tool_wear"]["hidden_up_to_um"]
+    none = run(0.0)
+    assert none["effects"] == ["thermal_drift"], f"{case}; no wear: {none['effects']}"
+    lim = none["detection_limits"]["tool_wear"]["hidden_up_to_um"]
     assert lim > 0.5, case                     # above the noise σ
     low = run(0.5 * lim)
-    assert low["effects"] == ["thermal_drift"], f"{case}; wear {0.5 * lim:.2f} um RMS: {low['effects']}"
-    amb = {a["effect"]: a for a in low["ambiguous_with"]["thermal_drift"]}
-    assert "tool_wear" in amb and amb["tool_wear"]["correlation"] >= AMBIGUOUS_RHO, case
-    assert low["detection_limits"]["tool_wear"]["hidden_up_to_um"] >= 0.5 * lim, case
+    assert low["effects"] in (["thermal_drift"], ["thermal_drift", "tool_wear"], ["tool_wear", "thermal_drift"]), \
+        f"{case}; wear {0.5 * lim:.2f} um RMS: {low['effects']}"
+    if low["effects"] == ["thermal_drift"]:
+        amb = {a["effect"]: a for a in low["ambiguous_with"]["thermal_drift"]}
+        assert "tool_wear" in amb and amb["tool_wear"]["correlation"] >= AMBIGUOUS_RHO, case
+        assert low["detection_limits"]["tool_wear"]["hidden_up_to_um"] >= 0.5 * lim, case
     # four times the limit is named: three times was missed at seed 2953978060 (a 13.6 µm drift along
     # z, named at 4×) though named at eight other seeds — the limit can understate under a large drift
     high = run(4.0 * lim)

@@ -170,6 +170,24 @@ def test_broken_programs_give_file_line_errors(name):
     msg = str(e.value)
     assert msg.startswith(f"dir/prog.nc:{line}: "), msg
     assert what in msg
+    # every problem has its line; one with a column points at what it names
+    text = (HEADER + body).splitlines()
+    assert e.value.problems[0][0] == line and what in e.value.problems[0][2]
+    for ln, col, _ in e.value.problems:
+        assert 1 <= ln <= len(text) + 1
+        if col is not None:
+            assert text[ln - 1][col - 1] not in " \t(", (ln, col, text[ln - 1])
+
+
+def test_every_problem_of_a_program_is_listed_with_line_and_column():
+    body = "G0 X0 Y0 Z5\nNow cut the pocket\nG1 Z0 F100 A5\nG7 X1 G66 Y2\nG1 X1 X2\n"
+    with pytest.raises(InputError) as e:
+        parse_program((HEADER + body).encode(), "p.nc", "p")
+    h = len(HEADER.splitlines())
+    found = [(ln - h, col, msg.split(":")[0]) for ln, col, msg in e.value.problems]
+    assert found == [(2, 1, "unrecognised word 'Now'"), (3, 12, "rotary axis words (A/B/C, 4/5-axis) are not supported"),
+                     (4, 1, "unknown or unsupported G code G7"), (4, 7, "unknown or unsupported G code G66")], found
+    assert str(e.value).startswith(f"p.nc:{h + 2}: unrecognised word 'Now' at column 1: ") and "(and 3 more problems)" in str(e.value)
 
 
 def test_binary_and_truncated():
