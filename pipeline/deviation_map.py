@@ -16,6 +16,8 @@ import pandas as pd
 
 # refined mesh edge (mm): fine enough for the pass spacing of a finish, coarse enough to draw
 EDGE_MM = 1.0
+# most faces of a refined mesh (a picture of ~2 s, a PLY of a few MB)
+MAX_FACES = 300_000
 # samples along a pass's contact line (mm apart)
 SAMPLE_MM = 0.5
 # a sample colours a vertex whose normal is within ~72° of its own (not the far side of a thin wall)
@@ -65,10 +67,12 @@ def vertex_errors(vertices: np.ndarray, normals: np.ndarray, xyz: np.ndarray, nr
     return out
 
 
-def refined_mesh(mesh, near: np.ndarray, radius_mm: float, edge_mm: float = EDGE_MM):
+def refined_mesh(mesh, near: np.ndarray, radius_mm: float, edge_mm: float = EDGE_MM,
+                 max_faces: int = MAX_FACES):
     """The mesh with no edge longer than ``edge_mm`` on the faces within ``radius_mm`` of the points
     ``near`` (and the faces around them); the rest as it is, to be drawn grey (the seams between
-    the two do not matter to a picture)."""
+    the two do not matter to a picture). The edge grows where that would make more than
+    ``max_faces`` faces (a picture of a whole large mould)."""
     import trimesh
     faces = np.asarray(mesh.faces)
     hit = _faces_near(mesh, near, radius_mm)
@@ -77,24 +81,32 @@ def refined_mesh(mesh, near: np.ndarray, radius_mm: float, edge_mm: float = EDGE
     fine = touch[faces].any(1)
     if not fine.any():
         return mesh
+    # midpoint subdivision splits a face in 4 until its longest edge fits: 4^k faces for k rounds
+    longest = mesh.edges_unique_length[mesh.faces_unique_edges[fine]].max(1)
+    count = lambda e: int((4.0 ** np.ceil(np.log2(np.maximum(longest / e, 1.0)))).sum())  # noqa: E731
+    while count(edge_mm) > max_faces:
+        edge_mm *= 1.25
     v, f = trimesh.remesh.subdivide_to_size(mesh.vertices, faces[fine], max_edge=edge_mm, max_iter=20)
     coarse = faces[~fine]
     return trimesh.Trimesh(np.vstack([v, mesh.vertices]), np.vstack([f, coarse + len(v)]), process=True)
 
 
 def _faces_near(mesh, points: np.ndarray, radius_mm: float) -> np.ndarray:
-    """Faces with a point within ``radius_mm`` of their plane inside their box grown by it."""
+    """Faces with a point within ``radius_mm`` of their plane inside their bounding sphere grown by it."""
+    from scipy.spatial import cKDTree
     if len(points) == 0:
         return np.zeros(0, np.int64)
     tri = mesh.triangles
-    lo, hi = tri.min(1) - radius_mm, tri.max(1) + radius_mm
+    centre = tri.mean(1)
+    reach = np.linalg.norm(tri - centre[:, None], axis=2).max(1) + radius_mm
     n, d = mesh.face_normals, np.einsum("ij,ij->i", mesh.face_normals, tri[:, 0])
-    hit = np.zeros(len(tri), bool)
-    for chunk in np.array_split(points, max(1, len(points) // 2000)):
-        inside = ((chunk[None] >= lo[:, None]) & (chunk[None] <= hi[:, None])).all(-1)
-        inside &= np.abs(chunk @ n.T - d).T <= radius_mm
-        hit |= inside.any(1)
-    return np.flatnonzero(hit)
+    cand = cKDTree(points).query_ball_point(centre, reach)
+    face = np.repeat(np.arange(len(tri)), [len(c) for c in cand])
+    if face.size == 0:
+        return np.zeros(0, np.int64)
+    pt = np.concatenate([np.asarray(c, np.int64) for c in cand])
+    close = np.abs(np.einsum("ij,ij->i", points[pt], n[face]) - d[face]) <= radius_mm
+    return np.unique(face[close])
 
 
 def interpolation_radius(xyz: np.ndarray) -> float:
@@ -155,7 +167,7 @@ def draw_views(ax_by_view: dict, mesh, err: np.ndarray, limit_um: float):
         uv = np.stack([tri @ right, tri @ up2], -1)[order]
         pc = PolyCollection(uv, facecolors=(face_rgb[facing] * shade[facing, None])[order],
                             edgecolors="face", linewidths=0.1, antialiaseds=False)
-        ax.add_collection(pc)
+        ax.add_collection(pc, autolim=False)
         allv = np.stack([mesh.vertices @ right, mesh.vertices @ up2], -1)
         lo, hi = allv.min(0), allv.max(0)
         pad = 0.03 * max(hi - lo)

@@ -32,8 +32,9 @@ def publish(run, reports: list, failures: list, wall_s: float) -> dict:
     try:
         key = report_key(run, kept)
         stamp = run.out / "report" / ".inputs"
-        if stamp.is_file() and stamp.read_text() == key and (run.out / "report" / "index.html").is_file():
-            report = run.out / "report" / "index.html"        # nothing it shows changed
+        if (not run.fresh and stamp.is_file() and stamp.read_text() == key
+                and (run.out / "report" / "index.html").is_file()):
+            report = run.out / "report" / "index.html"        # nothing it shows changed (--fresh: redrawn)
         else:
             stamp.unlink(missing_ok=True)
             report = report_mod.write_report(run.out, run.wf.name, nominal=nominal, kept=kept)
