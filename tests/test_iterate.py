@@ -196,17 +196,23 @@ def test_iterated_correction_through_the_engine(tmp_path):
     assert vm_rms["three"] <= 0.2 * vm_rms["original"]          # issue 5: ≤ 20 % of before
 
 
-def test_errors_follow_their_pass_when_the_corrected_program_splits_differently():
-    # the same blocks split into 5 mm and 2.5 mm passes: every error row of the fine split goes to
-    # the coarse pass of the same block whose midpoint is nearest (brute force reference)
-    from stages.correction.rounds import errors_on_passes
+def _two_splits():
+    """The cylinder program split into 2.5 mm (fine) and 5 mm (coarse) passes."""
     from stages.nc.moves import split_blocks
-    import pyarrow as pa
     blocks, _ = parse_program(_program(), "cyl.nc", "cyl")
     base = {"machine": {"rapid_mm_min": 30000.0}, "tool": {"type": "ball", "diameter_mm": 20.0, "control_point": "tip"}}
     fine = split_blocks(blocks, dict(base, split={"chord_tol_mm": 0.001, "max_pass_mm": 2.5, "merge_max_mm": 0.5}))
     coarse = split_blocks(blocks, dict(base, split={"chord_tol_mm": 0.001, "max_pass_mm": 5.0, "merge_max_mm": 0.5}))
     assert fine.num_rows > coarse.num_rows
+    return fine, coarse
+
+
+def test_errors_follow_their_pass_when_the_corrected_program_splits_differently():
+    # the same blocks split into 5 mm and 2.5 mm passes: every error row of the fine split goes to
+    # the coarse pass of the same block whose midpoint is nearest (brute force reference)
+    from stages.correction.rounds import errors_on_passes
+    import pyarrow as pa
+    fine, coarse = _two_splits()
     f = fine.to_pandas()
     err = pa.table({"program_id": ["cyl"] * len(f), "pass_id": f.pass_id.to_numpy(), "err_um": np.arange(len(f), dtype=float),
                     "nx": np.zeros(len(f)), "ny": np.zeros(len(f)), "nz": np.ones(len(f))})
@@ -229,14 +235,9 @@ def test_round_deviation_is_the_error_plus_the_path_shift_when_the_split_differs
     # the fine split moved 10 µm along +z and predicted −10 µm along +z: the surface it leaves is
     # the original one (deviation 0); a shift along x (perpendicular to the normal) adds nothing
     from stages.correct import round_record
-    from stages.nc.moves import split_blocks
     import pyarrow as pa
     import pyarrow.compute as pc
-    blocks, _ = parse_program(_program(), "cyl.nc", "cyl")
-    base = {"machine": {"rapid_mm_min": 30000.0}, "tool": {"type": "ball", "diameter_mm": 20.0, "control_point": "tip"}}
-    fine = split_blocks(blocks, dict(base, split={"chord_tol_mm": 0.001, "max_pass_mm": 2.5, "merge_max_mm": 0.5}))
-    coarse = split_blocks(blocks, dict(base, split={"chord_tol_mm": 0.001, "max_pass_mm": 5.0, "merge_max_mm": 0.5}))
-    assert fine.num_rows > coarse.num_rows
+    fine, coarse = _two_splits()
     moved = fine
     for c, d in (("z0_mm", 0.010), ("z1_mm", 0.010), ("x0_mm", 0.003), ("x1_mm", 0.003)):
         moved = moved.set_column(moved.schema.get_field_index(c), c, pc.add(moved.column(c), d))
