@@ -146,6 +146,24 @@ class Correct(_Strict):
                                  "corner of a G1 line (0: none), mm")
 
 
+class Feed(_Strict):
+    """Scheduled feeds (stage ``feed``): where a path offset cannot cancel a deflection, lower the feed."""
+
+    max_deflection_um: float = Field(gt=0, description="largest predicted tool deflection over a revolution, µm")
+    max_chip_mm: float = Field(gt=0, description="largest feed per tooth (the thickest chip), mm")
+    max_mm_min: float = Field(gt=0, description="no feed above this (passes that cut nothing get it), mm/min")
+    min_mm_min: float = Field(gt=0, description="no feed below this; a pass over the limit even there is "
+                              "flagged overloaded, mm/min")
+    max_change: float = Field(0.3, gt=0, description="neighbouring passes' feeds differ by at most this "
+                              "fraction (feeds are lowered to meet it)")
+
+    @model_validator(mode="after")
+    def _order(self):
+        if self.min_mm_min > self.max_mm_min:
+            raise ValueError(f"min_mm_min {self.min_mm_min:g} is above max_mm_min {self.max_mm_min:g}")
+        return self
+
+
 class Measurements(_Strict):
     """Measured points for the gap diagnosis (DESIGN §8): a CMM export or Parquet, with a column mapping."""
 
@@ -187,6 +205,7 @@ class Workflow(_Strict):
     prune: Prune = Field(Prune(), description="which passes are predicted")
     split: Split = Field(Split(), description="how NC motion becomes passes")
     correct: Correct = Field(Correct(), description="corrected programs")
+    feed: Optional[Feed] = Field(None, description="scheduled feeds (off without this section)")
     measurements: Union[str, Measurements, None] = Field(None, description="measured points for the gap diagnosis "
                                                          "(a file, or a mapping with `file`)")
     output: str = Field("runs/out", description="output directory, relative to the project")
@@ -273,82 +292,6 @@ def _pick(v, t, key):
     raise WorkflowError(f"{key}: no entry for T{t} (the workflow has T{', T'.join(str(e.t) for e in v)})")
 
 
-def _yaml_lines(text: str) -> dict:
-    """Line (1-based) of every key and list item of a YAML document, by key path."""
-    lines: dict = {}
-
-    def walk(node, prefix):
-        if isinstance(node, yaml.MappingNode):
-            for k, v in node.value:
-                key = prefix + (str(k.value),)
-                lines[key] = k.start_mark.line + 1
-                walk(v, key)
-        elif isinstance(node, yaml.SequenceNode):
-            for i, v in enumerate(node.value):
-                lines[prefix + (str(i),)] = v.start_mark.line + 1
-                walk(v, prefix + (str(i),))
-    try:
-        walk(yaml.compose(text), ())
-    except yaml.YAMLError:
-        pass
-    return lines
-
-
-def models_in(annotation) -> list:
-    """The config models an annotation may hold (through Optional, Union and list)."""
-    import typing
-    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
-        return [annotation]
-    return [m for a in typing.get_args(annotation) for m in models_in(a)]
-
-
-def _valid_keys(path: tuple) -> list[str]:
-    """The keys a mapping at ``path`` (list indices skipped) may have."""
-    models = [Workflow]
-    for key in path:
-        if key.isdigit():
-            continue
-        models = [m for model in models if key in model.model_fields
-                  for m in models_in(model.model_fields[key].annotation)]
-    return sorted({k for m in models for k in m.model_fields})
-
-
-def _format_error(path: Path, err: ValidationError, text: str = "") -> str:
-    """One line per problem: file, YAML line, the key path as the user wrote it (``tool.diameter_mm``),
-    what is wrong and, for an unknown key, the nearest valid one.
-
-    Pydantic reports every branch of a union (``tool`` may be one tool or a list); the branch that
-    only says "wrong container type" is dropped when another branch says something specific.
-    """
-    import difflib
-    lines_of = _yaml_lines(text)
-    items = []
-    for e in err.errors():
-        parts = tuple(str(p) for p in e["loc"] if not (isinstance(p, str) and ("[" in p or "(" in p)))
-        msg = e["msg"]
-        if e["type"] == "extra_forbidden":
-            valid = _valid_keys(parts[:-1])
-            near = difflib.get_close_matches(parts[-1], valid, n=1, cutoff=0.5)
-            msg = f"unknown key {parts[-1]!r}" + (f"; did you mean {near[0]!r}?" if near else
-                                                   f"; valid keys here: {', '.join(valid)}")
-        items.append((parts, msg, e["type"], e.get("input")))
-    loc_of = lambda parts: ".".join(parts) or "<top>"  # noqa: E731
-    specific = {loc_of(p) for p, _, typ, _ in items if not typ.endswith(("_type", "union_tag_invalid"))}
-    out, seen = [f"{path}: invalid workflow"], set()
-    for parts, msg, typ, inp in items:
-        loc = loc_of(parts)
-        if typ.endswith("_type") and any(s == loc or s.startswith(loc + ".") for s in specific):
-            continue
-        if (loc, msg) in seen:
-            continue
-        seen.add((loc, msg))
-        line = next((lines_of[parts[:k]] for k in range(len(parts), 0, -1) if parts[:k] in lines_of), None)
-        where = f"{path}:{line}: " if line else "  "
-        got = "" if typ == "extra_forbidden" else f" (got {inp!r})"
-        out.append(f"  {where}{loc}: {msg}{got}")
-    return "\n".join(out)
-
-
 def load_workflow(path: str | Path) -> tuple[Workflow, Path]:
     """Read and validate a workflow file; return it and the base directory for relative paths.
 
@@ -368,7 +311,8 @@ def load_workflow(path: str | Path) -> tuple[Workflow, Path]:
     try:
         wf = Workflow.model_validate(raw)
     except ValidationError as e:
-        raise WorkflowError(_format_error(path, e, text)) from None
+        from pipeline.config_errors import format_error
+        raise WorkflowError(format_error(path, e, text, Workflow)) from None
     base = path.resolve().parent
     if base.name == "workflows":
         base = base.parent

@@ -11,7 +11,8 @@ import typing
 from pydantic import BaseModel
 from pydantic.fields import PydanticUndefined
 
-from pipeline.config import Workflow, models_in
+from pipeline.config import Workflow
+from pipeline.config_errors import models_in
 
 HEADER = """# Workflow keys
 

@@ -16,6 +16,7 @@ import time
 import traceback
 from pathlib import Path
 
+import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from pipeline import deviation_map
@@ -50,6 +51,9 @@ def publish(run, reports: list, failures: list, wall_s: float) -> dict:
     summary["report"] = str(report) if report else None
     summary["report_error"] = report_error
     summary["dashboard"] = getattr(run, "dashboard", None)
+    feeds = feed_summary(run.out)
+    if feeds:
+        summary["feeds"] = feeds
     if run.repeat is not None:
         summary["rounds"] = {p.program_id: p.rounds for p in run.parts if p.rounds}
         summary["kept"] = kept
@@ -65,6 +69,23 @@ def report_key(run, kept: dict) -> str:
     return digest({"tables": {p.program_id: sorted(final_tables(run, p).items()) for p in run.parts},
                    "failed": {p.program_id: p.failed for p in run.parts}, "kept": kept, "title": run.wf.name,
                    "nominal": run.fingerprint("nominal"), "code": code})
+
+
+def feed_summary(out: Path) -> dict:
+    """Per program with scheduled feeds: machining time before and after, passes overloaded, and
+    what set the feeds (``feeds`` table)."""
+    d = Path(out) / "tables" / "feeds"
+    res = {}
+    for f in sorted(d.glob("*.parquet")) if d.is_dir() else []:
+        t = pq.read_table(f, columns=["duration_s", "duration_new_s", "overloaded", "limited_by"])
+        if t.num_rows == 0:
+            continue
+        limited = t.column("limited_by").value_counts().to_pylist()
+        res[f.stem] = {"duration_s": round(float(pc.sum(t.column("duration_s")).as_py()), 3),
+                       "duration_new_s": round(float(pc.sum(t.column("duration_new_s")).as_py()), 3),
+                       "overloaded": int(pc.sum(t.column("overloaded")).as_py() or 0),
+                       "limited_by": {x["values"]: x["counts"] for x in limited}}
+    return res
 
 
 def kept_summary(records: list, kept: int, stalled: bool) -> dict:

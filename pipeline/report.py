@@ -200,7 +200,7 @@ def _programs(out: Path, df: pd.DataFrame, kept: dict) -> tuple[str, list[str]]:
     """Rows of the programs table and the warnings of the run."""
     tables = out / "tables"
     progs = _read(tables, "programs")
-    cut, cor = _read(tables, "cut_filter"), _read(tables, "corrected")
+    cut, cor, feeds = _read(tables, "cut_filter"), _read(tables, "corrected"), _read(tables, "feeds")
     rows, warnings = [], []
     if progs is None:
         return "", warnings
@@ -237,8 +237,17 @@ def _programs(out: Path, df: pd.DataFrame, kept: dict) -> tuple[str, list[str]]:
                                 f"the error there is larger than a correction may move (NC lines "
                                 f"{', '.join(str(int(x)) for x in c.line_no[c.clipped].head(5))}"
                                 f"{', …' if c.clipped.sum() > 5 else ''})")
+        duration = _duration(p.duration_s)
+        if feeds is not None and (feeds.program_id == pid).any():
+            fd = feeds[feeds.program_id == pid]
+            duration += f" → {_duration(fd.duration_new_s.sum() + p.duration_s - fd.duration_s.sum())} (scheduled feeds)"
+            if fd.overloaded.any():
+                warnings.append(f"{esc}: {int(fd.overloaded.sum())} passes deflect more than "
+                                f"<code>feed.max_deflection_um</code> even at <code>feed.min_mm_min</code> (NC lines "
+                                f"{', '.join(str(int(x)) for x in fd.line_no[fd.overloaded].head(5))}"
+                                f"{', …' if fd.overloaded.sum() > 5 else ''}): less rest material there")
         rows.append(f"<tr><td>{esc}</td><td>ok</td><td>{int(p.n_passes)}</td><td>{n_cut}</td><td>{e.size}</td>"
-                    f"<td>{_duration(p.duration_s)}</td><td>{rms}</td><td>{mx}</td><td>{written}</td>"
+                    f"<td>{duration}</td><td>{rms}</td><td>{mx}</td><td>{written}</td>"
                     f"<td>{dev}</td><td>{clipped}</td></tr>")
     return "".join(rows), warnings
 
