@@ -110,7 +110,7 @@ def mould_graph() -> Graph:
                     until_table="corrected", max_rounds="correct.max_iter", record=correct.round_record,
                     record_inputs=("errors", "corrected", "passes", "passes@first"), kept_tables=("corrected",),
                     stalled=correct.stalled, keep=correct.kept_round)
-    nc = Writer("nc", corrected_programs, inputs=("program_file", "blocks", "corrected", "errors"),
+    nc = Writer("nc", corrected_programs, inputs=("program_file", "blocks", "corrected", "errors", "passes", "feeds"),
                 params=("correct",), directory="nc")
     return Graph(sources={"program_file": "partition", "stock": "stock", "nominal": "nominal"},
                  stages=main, repeat=rounds, status="programs", writers=(nc,))

@@ -50,6 +50,16 @@ def test_scheduled_feeds_keep_the_repredicted_deflection_at_the_limit(tmp_path):
     np.testing.assert_allclose(peak[lim.index], LIMIT_UM, rtol=1e-6)          # at the limit, not below it
     np.testing.assert_allclose(peak[lim.index], lim.peak_deflection_new_um, rtol=1e-9)
     assert (lim.feed_new_mm_min < lim.feed_mm_min).all()
+    # the corrected program carries the feeds: each cutting block at the slowest of its passes
+    from stages.nc.reader import parse_program
+    text = (out / "nc" / "cyl.nc").read_bytes()
+    assert b"FEEDS SCHEDULED" in text
+    blocks, _ = parse_program(text, "cyl.nc", "cyl")
+    b = blocks.to_pandas().set_index("block_no")
+    p = pd.read_parquet(out / "tables" / "passes")
+    for blk in p.block_no[p.motion.isin([1, 2, 3])]:
+        over = p.pass_id[(p.block_no <= blk) & (p.block_end >= blk)]
+        assert abs(b.feed_mm_min[blk] - f.feed_new_mm_min[over].min()) <= 0.5 + 1e-9, blk
     # time: each pass's duration scales with programmed / scheduled feed
     moving = f.limited_by != "rapid"
     np.testing.assert_allclose(f.duration_new_s[moving], f.duration_s[moving] * f.feed_mm_min[moving] / f.feed_new_mm_min[moving])
@@ -86,3 +96,36 @@ def test_smoothing_is_the_largest_feed_below_within_the_ratio(feed, c):
     i = np.arange(len(f))
     brute = (f[None, :] * (1 + c) ** np.abs(i[:, None] - i[None, :])).min(1)
     np.testing.assert_allclose(s, brute, rtol=1e-9)
+
+
+def _without_f_words(text: bytes) -> bytes:
+    import re
+    return re.sub(rb" ?F[0-9.]+", b"", text)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2 ** 31 - 1), st.floats(0.05, 1.0), st.sampled_from([b"", b"G20\n"]))
+def test_feed_words_give_the_scheduled_feed_on_every_cutting_block_and_change_nothing_else(seed, share, units):
+    from stages.nc.feed_words import write_feeds
+    from stages.nc.reader import parse_program
+    from tests.ncprograms import raster_program
+    src = raster_program(300, seed=seed % 1000, per_row=40)
+    if units:                                   # the same program in inch: F in inch/min
+        src = src.replace(b"G90 G17 G21", b"G90 G17 G20")
+    blocks, _ = parse_program(src, "p.nc", "p")
+    m = blocks.column("motion").to_numpy()
+    old = blocks.column("feed_mm_min").to_numpy()
+    rng = np.random.default_rng(seed)
+    cut = (m >= 1) & (m <= 3)
+    scale = 25.4 if units else 1.0
+    new = np.where(cut & (rng.random(len(m)) < share), np.round(rng.uniform(100, 3000, len(m)) / scale) * scale, old)
+    new = np.where(cut, new, np.nan)
+    text, n = write_feeds(src, blocks, new)
+    back, _ = parse_program(text, "p.nc", "p")
+    np.testing.assert_allclose(back.column("feed_mm_min").to_numpy()[cut], new[cut], atol=1e-6)
+    assert _without_f_words(text) == _without_f_words(src)                 # only F words differ
+    assert n == text.count(b"F") - src.count(b"F") + sum(1 for a, b in zip(text.split(b"\n"), src.split(b"\n"))
+                                                         if b"F" in a and b"F" in b and a != b)
+    # the feeds as programmed: the program comes back byte for byte
+    same, n0 = write_feeds(src, blocks, np.where(cut, old, np.nan))
+    assert same == src and n0 == 0

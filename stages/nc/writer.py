@@ -101,7 +101,7 @@ def _via_rows(corrected: pa.Table):
 
 
 def write_program(data: bytes, blocks: pa.Table, corrected: pa.Table, *, source_sha256: str | None = None,
-                  max_move_um: float | None = None) -> bytes:
+                  max_move_um: float | None = None, feeds_changed: int = 0) -> bytes:
     """The corrected program text.
 
     Parameters
@@ -111,6 +111,7 @@ def write_program(data: bytes, blocks: pa.Table, corrected: pa.Table, *, source_
     corrected : the ``corrected`` table (new coordinates per motion block)
     source_sha256 : hash of ``data`` for the header (computed when None)
     max_move_um : the clip limit, for the header (optional)
+    feeds_changed : F words the feed schedule wrote into ``data`` (said in the header)
 
     Returns
     -------
@@ -241,7 +242,7 @@ def write_program(data: bytes, blocks: pa.Table, corrected: pa.Table, *, source_
         e_dec = np.concatenate([e_dec, np.concatenate(x_decs)])
         e_letter = np.concatenate([e_letter, np.frombuffer(b"IJKR", np.uint8)[xc]])
         e_word = np.concatenate([e_word, a_widx[xr, xc]])
-    if e_row.size == 0 and not via.any():
+    if e_row.size == 0 and not via.any() and not feeds_changed:
         return data
 
     # replacements of present words (value span), insertions of absent ones (letter + value)
@@ -294,7 +295,9 @@ def write_program(data: bytes, blocks: pa.Table, corrected: pa.Table, *, source_
             + (f" - {vr.size} VIA LINES INSERTED" if vr.size else "")
             + f" - MAX MOVE {float(move_um.max()):.1f} UM - {clipped} CLIPPED"
             + (f" AT {max_move_um:g} UM" if max_move_um is not None else "")
-            + f" - {rounds} ROUND{'S' if rounds != 1 else ''} - SOURCE SHA256 {sha.upper()})").encode("ascii")
+            + f" - {rounds} ROUND{'S' if rounds != 1 else ''}"
+            + (f" - FEEDS SCHEDULED: {feeds_changed} F WORDS" if feeds_changed else "")
+            + f" - SOURCE SHA256 {sha.upper()})").encode("ascii")
     at = _header_line(lines)
     first_line = lines[max(at, 0)]
     eol = b"\r\n" if first_line.endswith(b"\r") else b"\n"
