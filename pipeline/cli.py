@@ -260,6 +260,10 @@ def _print_summary(s: dict) -> None:
     for st in s["stages"]:
         click.echo(f"{st['name']:>12}  {st['partitions']:>5}  {st['cached']:>6}  {st['computed']:>8}  "
                    f"{st['failed']:>6}  {st['wall_s']:>7.3f}")
+    for pid, w in (s.get("warnings") or {}).items():
+        parts = [f"{v['passes']} {r} (lines {', '.join(map(str, v['lines']))}{', …' if v['passes'] > len(v['lines']) else ''})"
+                 for r, v in w.items()]
+        click.echo(f"warning: {pid}: " + "; ".join(parts) + " - table warnings", err=True)
     for pid, f in (s.get("feeds") or {}).items():
         click.echo(f"{pid}: scheduled feeds: machining time {f['duration_s'] / 60:.1f} -> {f['duration_new_s'] / 60:.1f} min"
                    + (f"; {f['overloaded']} passes over feed.max_deflection_um even at feed.min_mm_min"

@@ -164,6 +164,15 @@ class Feed(_Strict):
         return self
 
 
+class Warnings(_Strict):
+    """Which passes are listed as ones a correction cannot help (table ``warnings``)."""
+
+    allowance_mm: Optional[float] = Field(None, gt=0, description="the finishing allowance the programs are "
+                                          "meant to meet (default: each program's median stock along the normal), mm")
+    rest_factor: float = Field(3.0, gt=1, description="stock along the normal over this many allowances is "
+                               "rest material")
+
+
 class Measurements(_Strict):
     """Measured points for the gap diagnosis (DESIGN §8): a CMM export or Parquet, with a column mapping."""
 
@@ -206,6 +215,7 @@ class Workflow(_Strict):
     split: Split = Field(Split(), description="how NC motion becomes passes")
     correct: Correct = Field(Correct(), description="corrected programs")
     feed: Optional[Feed] = Field(None, description="scheduled feeds (off without this section)")
+    warnings: Warnings = Field(Warnings(), description="passes a correction cannot help")
     measurements: Union[str, Measurements, None] = Field(None, description="measured points for the gap diagnosis "
                                                          "(a file, or a mapping with `file`)")
     output: str = Field("runs/out", description="output directory, relative to the project")

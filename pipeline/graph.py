@@ -101,11 +101,11 @@ class Graph:
 
 def mould_graph() -> Graph:
     """The main job: predict every finishing pass and correct the programs (workflows/mould.yaml)."""
-    from stages import correct, correct_blocks, deflection, errors, feed, forces, parse, scan, split
+    from stages import correct, correct_blocks, deflection, errors, feed, forces, parse, scan, split, warn
     from stages.nc.output import corrected_programs
-    main = tuple(Stage.of(m) for m in (parse, split, scan, forces, deflection, feed, errors, correct))
-    # the rounds predict the corrected path again; the feeds are scheduled on the program as written
-    again = tuple(s for s in main[1:] if s.name != "feed")
+    main = tuple(Stage.of(m) for m in (parse, split, scan, forces, deflection, feed, errors, warn, correct))
+    # the rounds predict the corrected path again; feeds and warnings are of the program as written
+    again = tuple(s for s in main[1:] if s.name not in ("feed", "warn"))
     rounds = Repeat(stages=(Stage.of(correct_blocks),) + again, until=correct.converged,
                     until_table="corrected", max_rounds="correct.max_iter", record=correct.round_record,
                     record_inputs=("errors", "corrected", "passes", "passes@first"), kept_tables=("corrected",),

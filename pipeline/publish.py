@@ -54,6 +54,7 @@ def publish(run, reports: list, failures: list, wall_s: float) -> dict:
     feeds = feed_summary(run.out)
     if feeds:
         summary["feeds"] = feeds
+    summary["warnings"], summary["allowance"] = warning_summary(run.out)
     if run.repeat is not None:
         summary["rounds"] = {p.program_id: p.rounds for p in run.parts if p.rounds}
         summary["kept"] = kept
@@ -86,6 +87,26 @@ def feed_summary(out: Path) -> dict:
                        "overloaded": int(pc.sum(t.column("overloaded")).as_py() or 0),
                        "limited_by": {x["values"]: x["counts"] for x in limited}}
     return res
+
+
+def warning_summary(out: Path) -> tuple[dict, dict]:
+    """Per program: the warnings by reason with their first NC lines, and the stock along the normal
+    its predicted passes meet (median, P95, max, mm)."""
+    import numpy as np
+    warns, allowance = {}, {}
+    d = Path(out) / "tables"
+    for f in sorted((d / "warnings").glob("*.parquet")) if (d / "warnings").is_dir() else []:
+        t = pq.read_table(f, columns=["reason", "line_no"]).to_pandas()
+        if len(t):
+            warns[f.stem] = {r: {"passes": int(len(g)), "lines": sorted({int(x) for x in g.line_no})[:5]}
+                             for r, g in t.groupby("reason")}
+    for f in sorted((d / "allowance").glob("*.parquet")) if (d / "allowance").is_dir() else []:
+        s = pq.read_table(f, columns=["stock_mm"]).column("stock_mm").to_numpy(zero_copy_only=False).astype(float)
+        s = s[np.isfinite(s)]
+        if s.size:
+            allowance[f.stem] = {"median_mm": round(float(np.median(s)), 4), "p95_mm": round(float(np.percentile(s, 95)), 4),
+                                 "max_mm": round(float(s.max()), 4)}
+    return warns, allowance
 
 
 def kept_summary(records: list, kept: int, stalled: bool) -> dict:

@@ -201,6 +201,7 @@ def _programs(out: Path, df: pd.DataFrame, kept: dict) -> tuple[str, list[str]]:
     tables = out / "tables"
     progs = _read(tables, "programs")
     cut, cor, feeds = _read(tables, "cut_filter"), _read(tables, "corrected"), _read(tables, "feeds")
+    listed = _read(tables, "warnings")
     rows, warnings = [], []
     if progs is None:
         return "", warnings
@@ -228,6 +229,11 @@ def _programs(out: Path, df: pd.DataFrame, kept: dict) -> tuple[str, list[str]]:
             warnings.append(f"{esc}: no corrected program: no correction was predicted to deviate less than "
                             "the program as written (a deflection that changes with the offset; lower the "
                             "feed or the rest material there)")
+        if listed is not None:
+            for reason, g in listed[listed.program_id == pid].groupby("reason"):
+                lines = ", ".join(str(int(x)) for x in sorted(set(g.line_no))[:5])
+                warnings.append(f"{esc}: {len(g)} passes <code>{reason}</code> (NC lines {lines}"
+                                f"{', …' if g.line_no.nunique() > 5 else ''}), e.g. {html.escape(g.message.iloc[0])}")
         clipped = ""
         if cor is not None and (cor.program_id == pid).any():
             c = cor[cor.program_id == pid]
@@ -241,11 +247,6 @@ def _programs(out: Path, df: pd.DataFrame, kept: dict) -> tuple[str, list[str]]:
         if feeds is not None and (feeds.program_id == pid).any():
             fd = feeds[feeds.program_id == pid]
             duration += f" → {_duration(fd.duration_new_s.sum() + p.duration_s - fd.duration_s.sum())} (scheduled feeds)"
-            if fd.overloaded.any():
-                warnings.append(f"{esc}: {int(fd.overloaded.sum())} passes deflect more than "
-                                f"<code>feed.max_deflection_um</code> even at <code>feed.min_mm_min</code> (NC lines "
-                                f"{', '.join(str(int(x)) for x in fd.line_no[fd.overloaded].head(5))}"
-                                f"{', …' if fd.overloaded.sum() > 5 else ''}): less rest material there")
         rows.append(f"<tr><td>{esc}</td><td>ok</td><td>{int(p.n_passes)}</td><td>{n_cut}</td><td>{e.size}</td>"
                     f"<td>{duration}</td><td>{rms}</td><td>{mx}</td><td>{written}</td>"
                     f"<td>{dev}</td><td>{clipped}</td></tr>")

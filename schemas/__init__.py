@@ -9,7 +9,7 @@ import importlib
 
 import pyarrow as pa
 
-TABLES = ("programs", "problems", "blocks", "passes", "cut_filter", "angle_prune", "generating", "engagement", "forces", "feeds",
+TABLES = ("programs", "problems", "blocks", "passes", "cut_filter", "angle_prune", "generating", "engagement", "forces", "feeds", "allowance", "warnings",
           "deflection", "errors", "corrected", "measurements", "gap_points", "gap_effects", "tool_wear")
 
 

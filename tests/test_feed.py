@@ -129,3 +129,90 @@ def test_feed_words_give_the_scheduled_feed_on_every_cutting_block_and_change_no
     # the feeds as programmed: the program comes back byte for byte
     same, n0 = write_feeds(src, blocks, np.where(cut, old, np.nan))
     assert same == src and n0 == 0
+
+
+def test_warnings_list_what_a_correction_cannot_help(tmp_path):
+    feed = {"max_deflection_um": 1e-3, "max_chip_mm": 0.5, "max_mm_min": 6000, "min_mm_min": 300}
+    out, wf = _job(tmp_path, feed)
+    a = pd.read_parquet(out / "tables" / "allowance")
+    e = pd.read_parquet(out / "tables" / "errors")
+    assert len(a) == len(e) >= 3
+    w = pd.read_parquet(out / "tables" / "warnings")
+    f = pd.read_parquet(out / "tables" / "feeds")
+    limit = wf["correct"]["max_move_um"]
+    assert set(w.pass_id[w.reason == "beyond_move_limit"]) == set(e.pass_id[e.err_um.abs() > limit])
+    assert set(w.pass_id[w.reason == "overloaded"]) == set(f.pass_id[f.overloaded]) and f.overloaded.sum() >= 3
+    assert not (w.reason == "rest_material").any()                  # an even allowance: no rest material
+    lines = pd.read_parquet(out / "tables" / "passes").set_index("pass_id").line_no
+    assert (w.line_no.to_numpy() == lines[w.pass_id].to_numpy()).all()
+
+
+def test_rest_material_is_stock_over_the_stated_allowance(tmp_path):
+    (tmp_path / "a").mkdir()
+    out, wf = _job(tmp_path / "a", None)
+    path = sorted((tmp_path / "a").glob("wf_*.yaml"))[0]
+    wf["warnings"] = {"allowance_mm": 0.03, "rest_factor": 3.0}        # 0.09 mm < the 0.13–0.3 mm met
+    path.write_text(yaml.safe_dump(wf))
+    _run(path)
+    w = pd.read_parquet(out / "tables" / "warnings")
+    a = pd.read_parquet(out / "tables" / "allowance")
+    rest = w[w.reason == "rest_material"]
+    assert set(rest.pass_id) == set(a.pass_id) and np.allclose(rest.limit, 0.09)
+    np.testing.assert_allclose(rest.sort_values("pass_id").value, a.sort_values("pass_id").stock_mm)
+
+
+def test_stock_along_the_normal_against_a_brute_force_of_the_material_before_each_pass(tmp_path):
+    # a Ø10 ball finishing a floor (tip at z = 0) under a box stock whose top is 0.3 mm higher, rows
+    # 1 mm apart. Brute force, sharing nothing with the scan: the material before a pass at its
+    # prediction point is the box less the capsules swept by the ball centres of the earlier passes
+    # and of its own path up to that point; the stock met is the largest (p − G)·n over the tool's
+    # envelope points in it (G, n: the generating table). Over a floor it is the stock height.
+    rows = [f"G1 X{18 if k % 2 == 0 else 2}.0 Y{4 + k}.0" for k in range(10)]
+    zig = []
+    for k, r in enumerate(rows):
+        zig += [f"G1 Y{4 + k}.0", r]
+    text = "\n".join(["%", "O1 (FLOOR)", "G90 G17 G21", "T1 M6", "S8000 M3", "G0 X2.0 Y4.0 Z5.0", "G1 Z0.0 F1500",
+                      *zig, "G0 Z5.0", "M30", "%", ""])
+    (tmp_path / "nc").mkdir()
+    (tmp_path / "nc" / "floor.nc").write_text(text)
+    top = 0.3
+    trimesh.creation.box(bounds=[[0, 0, -5], [20, 20, top]]).export(tmp_path / "stock.stl")
+    path = _workflow(tmp_path, max_iter=1, until="warn")
+    wf = yaml.safe_load(path.read_text())
+    wf["tool"]["diameter_mm"] = 10
+    path.write_text(yaml.safe_dump(wf))
+    _run(path)
+    t = tmp_path / "out" / "tables"
+    a = pd.read_parquet(t / "allowance").dropna().set_index("pass_id").stock_mm
+    gen = pd.read_parquet(t / "generating").set_index("pass_id")
+    cf = pd.read_parquet(t / "cut_filter").set_index("pass_id")
+    p = pd.read_parquet(t / "passes").set_index("pass_id")
+    assert len(a) >= 8
+    R = 5.0
+    z = (np.arange(360) + 0.5) * R / 180
+    z = z[z < R]
+    r = np.sqrt(R ** 2 - (R - z) ** 2)
+    ang = np.radians(np.arange(0, 360, 2.0))
+    c0 = p[["x0_mm", "y0_mm", "z0_mm"]].to_numpy() + [0, 0, R]
+    c1 = p[["x1_mm", "y1_mm", "z1_mm"]].to_numpy() + [0, 0, R]
+    ids = p.index.to_numpy()
+
+    def in_capsule(x, a0, a1):
+        d = a1 - a0
+        s = np.clip(((x - a0) @ d) / max(d @ d, 1e-12), 0, 1)
+        return np.linalg.norm(x - (a0 + s[:, None] * d), axis=1) < R - 1e-3
+    for pid, got in a.items():
+        tip = cf.loc[pid, ["pred_x_mm", "pred_y_mm", "pred_z_mm"]].to_numpy(float)
+        pts = np.stack([tip[0] + r[:, None] * np.cos(ang), tip[1] + r[:, None] * np.sin(ang),
+                        np.broadcast_to(tip[2] + z[:, None], (len(z), len(ang)))], -1).reshape(-1, 3)
+        mat = (pts[:, 2] < top) & (pts[:, :2] > 0).all(1) & (pts[:, :2] < 20).all(1)
+        k = int(np.flatnonzero(ids == pid)[0])
+        for j in range(k):
+            mat &= ~in_capsule(pts, c0[j], c1[j])
+        mat &= ~in_capsule(pts, c0[k], tip + [0, 0, R] - 1e-3 * (c1[k] - c0[k]))
+        G = gen.loc[pid, ["gen_x_mm", "gen_y_mm", "gen_z_mm"]].to_numpy(float)
+        n = gen.loc[pid, ["nx", "ny", "nz"]].to_numpy(float)
+        brute = ((pts[mat] - G) @ n).max()
+        assert abs(got - brute) <= R / 180 + 1.0 / wf["render"]["px_per_mm"], (pid, got, brute)
+        if abs(n[2]) > 0.999:                                   # the floor's own normal: the stock height
+            assert abs(got - top) <= R / 180 + 1.0 / wf["render"]["px_per_mm"], (pid, got)
