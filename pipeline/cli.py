@@ -277,7 +277,7 @@ def _print_summary(s: dict) -> None:
                        f"round {k['kept_round']}'s correction is written: deviation RMS {first} -> "
                        f"{k['kept_rms_dev_um']:.1f} um predicted")
         else:
-            click.echo(f"warning: {pid}: no corrected program is written: none was predicted to deviate less "
+            click.echo(f"warning: {pid}: no coordinate correction is written: none was predicted to deviate less "
                        f"than the program as written ({first} um RMS); a path offset does not help there",
                        err=True)
     if s.get("report_error"):

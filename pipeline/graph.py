@@ -77,7 +77,8 @@ class Writer:
     """A file output made after the run from one partition's tables (e.g. corrected NC programs).
 
     ``fn(inputs, params) -> {file name: bytes}``; the engine writes the files atomically into
-    ``<out>/<directory>/`` for every partition that has all ``inputs``.
+    ``<out>/<directory>/`` for every partition that has all ``inputs`` (a name ending in ``?`` may be
+    missing: it is then None).
     """
 
     name: str
@@ -110,7 +111,7 @@ def mould_graph() -> Graph:
                     until_table="corrected", max_rounds="correct.max_iter", record=correct.round_record,
                     record_inputs=("errors", "corrected", "passes", "passes@first"), kept_tables=("corrected",),
                     stalled=correct.stalled, keep=correct.kept_round)
-    nc = Writer("nc", corrected_programs, inputs=("program_file", "blocks", "corrected", "errors", "passes", "feeds"),
+    nc = Writer("nc", corrected_programs, inputs=("program_file", "blocks", "corrected?", "errors", "passes", "feeds"),
                 params=("correct",), directory="nc")
     return Graph(sources={"program_file": "partition", "stock": "stock", "nominal": "nominal"},
                  stages=main, repeat=rounds, status="programs", writers=(nc,))

@@ -174,16 +174,20 @@ def write_files(run, failures: list) -> int:
             if part.failed:
                 continue
             have = final_tables(run, part)
-            if not all(i.partition("@")[0] in have or run.graph.sources.get(i) for i in writer.inputs):
+            if not all(i.endswith("?") or i.partition("@")[0] in have or run.graph.sources.get(i)
+                       for i in writer.inputs):
                 continue
             try:
                 inputs = {}
-                for name in writer.inputs:
+                for spec in writer.inputs:
+                    name = spec.rstrip("?")
                     if run.graph.sources.get(name) == "partition":
                         inputs[name] = {"path": part.path, "sha256": part.sha256, "program_id": part.program_id}
-                    else:
+                    elif name in have:
                         stage, key = have[name]
                         inputs[name] = run.cache.read(stage, key, name)
+                    else:
+                        inputs[name] = None
                 files = writer.fn(inputs, run.wf.params(writer.params, part.tool_t, run.base))
                 outdir = run.out / writer.directory
                 outdir.mkdir(parents=True, exist_ok=True)

@@ -226,7 +226,7 @@ def _programs(out: Path, df: pd.DataFrame, kept: dict) -> tuple[str, list[str]]:
             dev = f"{k['first_rms_dev_um']:.2f} → {after}"
         else:
             written, dev = "no", f"{k['first_rms_dev_um']:.2f} → no round lowered it"
-            warnings.append(f"{esc}: no corrected program: no correction was predicted to deviate less than "
+            warnings.append(f"{esc}: no coordinate correction: none was predicted to deviate less than "
                             "the program as written (a deflection that changes with the offset; lower the "
                             "feed or the rest material there)")
         if listed is not None:

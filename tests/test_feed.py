@@ -216,3 +216,24 @@ def test_stock_along_the_normal_against_a_brute_force_of_the_material_before_eac
         assert abs(got - brute) <= R / 180 + 1.0 / wf["render"]["px_per_mm"], (pid, got, brute)
         if abs(n[2]) > 0.999:                                   # the floor's own normal: the stock height
             assert abs(got - top) <= R / 180 + 1.0 / wf["render"]["px_per_mm"], (pid, got)
+
+
+def test_a_program_without_a_kept_correction_still_gets_its_scheduled_feeds(tmp_path):
+    from stages.nc.output import corrected_programs
+    from stages.nc.reader import parse_program
+    feed = {"max_deflection_um": LIMIT_UM, "max_chip_mm": 0.5, "max_mm_min": 20000, "min_mm_min": 10}
+    out, _ = _job(tmp_path, feed)
+    t = {n: pq.read_table(out / "tables" / n / "cyl.parquet") for n in ("blocks", "errors", "passes", "feeds")}
+    src = tmp_path / "nc" / "cyl.nc"
+    files = corrected_programs({"program_file": {"path": str(src), "sha256": "ab", "program_id": "cyl"},
+                                "corrected": None, **t}, {"correct": {}})
+    text = files["cyl.nc"]
+    assert b"(FEEDS SCHEDULED" in text and b"COORDINATES AS PROGRAMMED" in text
+    new, _ = parse_program(text, "cyl.nc", "cyl")
+    old, _ = parse_program(src.read_bytes(), "cyl.nc", "cyl")
+    for c in ("x1_mm", "y1_mm", "z1_mm"):
+        assert np.array_equal(new.column(c).to_numpy(), old.column(c).to_numpy())
+    assert (new.column("feed_mm_min").to_numpy() != old.column("feed_mm_min").to_numpy()).any()
+    # without feeds nothing is written
+    assert corrected_programs({"program_file": {"path": str(src), "sha256": "ab", "program_id": "cyl"},
+                               "corrected": None, **dict(t, feeds=t["feeds"].slice(0, 0))}, {"correct": {}}) == {}

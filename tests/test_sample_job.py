@@ -51,7 +51,7 @@ def test_every_stage_runs_and_every_output_is_written(job):
                 assert k["kept_rms_dev_um"] == min(devs) < devs[0]
         else:
             assert not (out / "nc" / f"{pid}.nc").exists() and min(devs) >= 0.99 * devs[0]
-            assert f"warning: {pid}: no corrected program" in log
+            assert f"warning: {pid}: no coordinate correction" in log
 
 
 def test_readme_queries_on_the_sample_job(job):

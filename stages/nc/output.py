@@ -10,7 +10,7 @@ import numpy as np
 from stages.nc.feed_words import block_feeds, write_feeds
 from stages.nc.heidenhain import write_comp_table, write_ln_program
 from stages.nc.reader import parse_program
-from stages.nc.writer import reverse_check, write_program
+from stages.nc.writer import reverse_check, with_header, write_program
 from stages.tables import col
 
 
@@ -19,28 +19,39 @@ def corrected_programs(inputs: dict, params: dict) -> dict[str, bytes]:
 
     Parameters
     ----------
-    inputs : {"program_file": {path, sha256, program_id}, "blocks", "corrected", "errors", "passes",
-        "feeds"}
+    inputs : {"program_file": {path, sha256, program_id}, "blocks", "corrected" (None: no correction
+        kept; a file only with scheduled feeds), "errors", "passes", "feeds"}
     params : {"correct": {max_move_um, ln_normals, comp_table, ...}}
     """
     f = inputs["program_file"]
     src = Path(f["path"])
     blocks, corrected = inputs["blocks"], inputs["corrected"]
     opts = params.get("correct") or {}
-    data = src.read_bytes()
     feeds = inputs.get("feeds")
+    if corrected is None:
+        if feeds is None or feeds.num_rows == 0:
+            return {}
+        from schemas.corrected import SCHEMA
+        corrected = SCHEMA.empty_table()
+    data = src.read_bytes()
     scheduled, n_feed = None, 0
     if feeds is not None and feeds.num_rows:
         scheduled = block_feeds(blocks, inputs["passes"], feeds)
         data, n_feed = write_feeds(data, blocks, scheduled)
-    text = write_program(data, blocks, corrected, source_sha256=f["sha256"],
-                         max_move_um=opts.get("max_move_um"), feeds_changed=n_feed)
+    if corrected.num_rows:
+        text = write_program(data, blocks, corrected, source_sha256=f["sha256"],
+                             max_move_um=opts.get("max_move_um"), feeds_changed=n_feed)
+    else:
+        text = with_header(data, f"(FEEDS SCHEDULED - {n_feed} F WORDS - COORDINATES AS PROGRAMMED - "
+                                 f"SOURCE SHA256 {f['sha256'].upper()})") if n_feed else data
     check = reverse_check(text, blocks, corrected, path=str(src), program_id=f["program_id"])
     if not check.get("ok", False):
         raise RuntimeError(f"{src}: corrected program failed its reverse check: {check}")
     if scheduled is not None:
         _check_feeds(text, blocks, scheduled, str(src), f["program_id"])
     out = {src.name: text}
+    if corrected.num_rows == 0:
+        return out
     if opts.get("ln_normals"):
         out[f"{src.stem}_ln.h"] = write_ln_program(blocks, corrected, name=src.stem).encode()
     if opts.get("comp_table"):

@@ -351,6 +351,17 @@ def _via_lines(data, sc, wl, w_row, own, held, dec, defined, line) -> np.ndarray
     return np.hstack(parts)
 
 
+def with_header(data: bytes, comment: str) -> bytes:
+    """``data`` with the line ``comment`` after its O line (else its first %, else first)."""
+    lines = data.split(b"\n")
+    at = _header_line(lines)
+    eol = b"\r\n" if lines[max(at, 0)].endswith(b"\r") else b"\n"
+    text = comment.encode("ascii")
+    if at < 0:
+        return text + eol + data
+    return b"\n".join(lines[:at + 1]) + b"\n" + text + eol + b"\n".join(lines[at + 1:])
+
+
 def _splice(data: bytes, start, end, body) -> bytes:
     """``data`` with the byte ranges [start, end) (sorted, disjoint) replaced by the rows of ``body``
     (uint8 matrix, 0 = padding), assembled with one gather instead of a Python loop."""
@@ -551,7 +562,7 @@ def reverse_check(text: bytes, blocks: pa.Table, corrected: pa.Table, path: str 
         cgot = np.stack([col(new_blocks, c) for c in ("cx_mm", "cy_mm", "cz_mm")], 1)[rows][arc]
         cwant = np.stack([col(corrected, c) for c in ("cx_new_mm", "cy_new_mm", "cz_new_mm")], 1)[arc]
         rep["max_centre_dev_um"] = float(np.nanmax(np.abs(cgot - cwant)) * 1000)
-    rep["max_grid_um"] = float(grid.max() * 1000)
+    rep["max_grid_um"] = float(grid.max() * 1000) if grid.size else 0.0
     if np.any(dev > grid[:, None] + 1e-9):
         i = int(np.argmax(dev.max(1)))
         rep.update(ok=False, message=f"block {int(bno[rows[i]])}: parsed {got[i]} != corrected {want[i]}")
