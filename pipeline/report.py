@@ -98,6 +98,7 @@ def write_report(out: str | Path, title: str = "run", nominal: str | Path | None
     if nominal is not None and Path(nominal).is_file():
         pictures.append(_deviation_map(rep, df, Path(nominal), lim, label))
     else:
+        (rep / "deviation.ply").unlink(missing_ok=True)          # an earlier run's, of another model
         pictures.append(_point_map(rep, df, lim, label))
 
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.2))

@@ -54,8 +54,10 @@ def where(msg: str, col) -> str:
 class Problems:
     """Collects every problem of a program and raises them together as a :class:`ProgramError`.
 
-    The parser checks in phases (a later phase needs what an earlier one established), so the
-    problems raised are all those of the first phase that found any.
+    The parser checks in phases (a later phase needs what an earlier one established). Problems
+    later phases can live with (a comment not closed on its line, a line of prose, an unsupported
+    axis word) are kept and checking goes on; the first phase that finds one they cannot live with
+    raises everything found so far.
     """
 
     # a check that holds on many lines (a pasted text) lists this many of them
