@@ -75,8 +75,11 @@ def write_program(path: Path, rows) -> int:
     return moves + 1
 
 
-def make_job(root: Path, n_passes: int) -> Path:
-    """Write the bench job (program, models, workflow) under ``root``; returns the workflow."""
+def make_job(root: Path, n_passes: int, n_programs: int = 1) -> Path:
+    """Write the bench job (programs, models, workflow) under ``root``; returns the workflow.
+
+    With ``n_programs`` > 1 the rows are dealt to that many programs, bands of consecutive rows (a
+    mould finished region by region), each on the same stock."""
     root.mkdir(parents=True, exist_ok=True)
     (root / "nc").mkdir(exist_ok=True)
     design = design_mesh()
@@ -85,7 +88,11 @@ def make_job(root: Path, n_passes: int) -> Path:
     stock.apply_translation([0.0, 0.0, ALLOWANCE_MM])
     stock.export(root / "stock.stl")
     rows = raster(design, n_passes, TOOL_D_MM / 2)
-    write_program(root / "nc" / "raster.nc", rows)
+    if n_programs <= 1:
+        write_program(root / "nc" / "raster.nc", rows)
+    else:
+        for k, band in enumerate(np.array_split(np.arange(len(rows)), n_programs)):
+            write_program(root / "nc" / f"raster_{k:02d}.nc", [rows[i] for i in band])
     wf = {
         "name": "bench", "programs": "nc/*.nc", "stock": "stock.stl", "nominal": "design.stl",
         "tool": {"type": "ball", "diameter_mm": TOOL_D_MM, "flutes": 2, "helix_deg": 30, "stickout_mm": 30},
@@ -150,17 +157,17 @@ def run_job(workflow: Path, workers: int | None, scheduler: str | None, fresh: b
 
 
 def bench(n_passes: int, root: Path, workers: int | None = None, scheduler: str | None = None,
-          rerun: bool = False) -> dict:
+          rerun: bool = False, n_programs: int = 1) -> dict:
     """Make the job (once per size under ``root``), run it from a cold cache, and optionally again."""
-    job = root / f"passes-{n_passes}"
+    job = root / (f"passes-{n_passes}" + (f"-programs-{n_programs}" if n_programs > 1 else ""))
     workflow = job / "bench.yaml"
     if not workflow.exists():
-        make_job(job, n_passes)
+        make_job(job, n_passes, n_programs)
     import pyarrow.parquet as pq
     cold = run_job(workflow, workers, scheduler, fresh=True)
     passes = sum(pq.ParquetFile(f).metadata.num_rows for f in (job / "out" / "tables" / "passes").glob("*.parquet"))
     out = {"passes": passes, "wall_s": cold["wall_s"], "passes_per_s": round(passes / cold["wall_s"], 1),
-           "peak_rss_mb": cold["peak_rss_mb"], "stage_s": cold["stage_s"], "workers": workers,
+           "peak_rss_mb": cold["peak_rss_mb"], "stage_s": cold["stage_s"], "workers": workers, "programs": n_programs,
            "backend": _backend(), "failures": cold["failures"]}
     if rerun:
         out["rerun_s"] = run_job(workflow, workers, scheduler, fresh=False)["wall_s"]

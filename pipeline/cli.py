@@ -65,13 +65,15 @@ def status(workflow, out, as_json):
 @click.option("--workers", type=click.IntRange(1, 256), help="Workers of the LocalCluster (default: CPU count).")
 @click.option("--scheduler", help="Address of an existing Dask scheduler.")
 @click.option("--rerun", is_flag=True, help="Run again with nothing changed and report its seconds.")
+@click.option("--programs", "n_programs", type=click.IntRange(1, 64), default=1, show_default=True,
+              help="Deal the raster's rows to this many programs (a mould finished region by region).")
 @click.option("--dir", "root", type=click.Path(file_okay=False), help="Where the jobs are made (default runs/bench).")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False), help="Write the figures to this file.")
-def bench_cmd(n_passes, workers, scheduler, rerun, root, json_path):
+def bench_cmd(n_passes, workers, scheduler, rerun, n_programs, root, json_path):
     """Run the whole chain on a generated finishing job of N passes and print its figures."""
     from pipeline import bench
     res = bench.bench(n_passes, Path(root) if root else bench.default_root(), workers=workers, scheduler=scheduler,
-                      rerun=rerun)
+                      rerun=rerun, n_programs=n_programs)
     click.echo(bench.write_json(res, json_path))
     sys.exit(1 if res["failures"] else 0)
 

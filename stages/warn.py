@@ -18,7 +18,7 @@ from stages.surface.allowance import stock_along_normal
 from stages.tables import col, match_passes, pick_entry, program_tool_number
 
 NAME = "warn"
-VERSION = "1"
+VERSION = "2"
 INPUTS = ("passes", "cut_filter", "generating", "engagement", "errors", "feeds")
 OUTPUTS = ("allowance", "warnings")
 PARAMS = ("tool", "correct.max_move_um", "warnings")

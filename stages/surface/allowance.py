@@ -18,6 +18,8 @@ from stages.cutting.forces import unpack_engagement
 from stages.geometry.cutter import Cutter
 from stages.tables import col, xyz
 
+ROWS_PER_CHUNK = 256
+
 
 def stock_along_normal(engagement: pa.Table, generating: pa.Table, cut_filter: pa.Table,
                        cutter: Cutter) -> tuple[np.ndarray, np.ndarray]:
@@ -45,18 +47,18 @@ def stock_along_normal(engagement: pa.Table, generating: pa.Table, cut_filter: p
     out = np.full(eid.size, np.nan)
     keys = np.stack([n_z, n_phi, dz], 1)
     for key in np.unique(keys, axis=0):
-        sel = np.flatnonzero((keys == key).all(1) & ok)
-        if not sel.size:
-            continue
+        rows = np.flatnonzero((keys == key).all(1) & ok)
         nz, nphi, d = int(key[0]), int(key[1]), float(key[2])
-        E = unpack_engagement([masks[i] for i in sel], nz, nphi)
         z = (np.arange(nz) + 0.5) * d
         r = cutter.immersion(z)[0]
-        ang = feed[sel, None] + np.radians((np.arange(nphi) + 0.5) * 360.0 / nphi)[None, :]
-        # (p − G)·n = (tip − G)·n + r cos(a) nx + r sin(a) ny + z nz, per (pass, level, angle)
-        base = np.einsum("ij,ij->i", tip[sel] - G[sel], n[sel])
-        h = (base[:, None, None] + r[None, :, None] * (np.cos(ang) * n[sel, 0, None] + np.sin(ang) * n[sel, 1, None])[:, None, :]
-             + z[None, :, None] * n[sel, 2, None, None])
-        t = np.where(E, h, -np.inf).max((1, 2))
-        out[sel] = np.where(np.isfinite(t), t, np.nan)
+        for a in range(0, rows.size, ROWS_PER_CHUNK):       # bounds the (rows, levels, angles) arrays
+            sel = rows[a:a + ROWS_PER_CHUNK]
+            E = unpack_engagement([masks[i] for i in sel], nz, nphi)
+            ang = feed[sel, None] + np.radians((np.arange(nphi) + 0.5) * 360.0 / nphi)[None, :]
+            # (p − G)·n = (tip − G)·n + r cos(a) nx + r sin(a) ny + z nz, per (pass, level, angle)
+            base = np.einsum("ij,ij->i", tip[sel] - G[sel], n[sel])
+            lateral = (np.cos(ang) * n[sel, 0, None] + np.sin(ang) * n[sel, 1, None]).astype(np.float32)
+            h = r.astype(np.float32)[None, :, None] * lateral[:, None, :] + (z[None, :] * n[sel, 2, None]).astype(np.float32)[:, :, None]
+            t = np.where(E, h, -np.inf).max((1, 2)) + base
+            out[sel] = np.where(np.isfinite(t), t, np.nan)
     return eid, out
