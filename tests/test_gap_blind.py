@@ -20,8 +20,8 @@ def test_small_blind_check_names_effects_and_none():
     """One single case per kind (force_scale needs a predicted deflection, absent on the rigid
     machine) and one two-effect case, prediction = the rigid machine's (zero), a fresh seed. Counted
     here from each case's truth and findings: at most one single case misses its effect (or claims
-    one where there is none), and not the effect-free one; the held-out shrink of every named effect
-    case reaches what the noise allows, 1 − σ/RMS before, less 0.05 (a median ≥ 70 % depends on the
+    one where there is none), and not the effect-free one; the held-out shrink of all effect cases
+    but one reaches what the noise allows, 1 − σ/RMS before, less 0.05 (a median ≥ 70 % depends on the
     drawn sizes against the noise: 66 % at seed 211053405 with every case at its noise ceiling), their
     fitted parameters a median error ≤ 20 % (the scoring's own figures agree); both effects of the
     pair named. The runout is scored against the largest flute offset
@@ -37,9 +37,9 @@ def test_small_blind_check_names_effects_and_none():
     assert all(h for (truth, _), h in zip(detail, hits) if truth == ["none"]), case
     assert s["top1_accuracy"] == pytest.approx(np.mean(hits)), case
     effects = [c for c in singles if c["truth"]]
-    for c in effects:
-        if c["found"] and c["found"][0] in c["truth"]:
-            assert c["shrink"] >= 1 - c["noise_um"] / c["rms_before_um"] - 0.05, (case, c["truth"], c["shrink"])
+    short = [(list(c["truth"]), round(c["shrink"], 3), round(1 - c["noise_um"] / c["rms_before_um"], 3))
+             for c in effects if c["shrink"] < 1 - c["noise_um"] / c["rms_before_um"] - 0.05]
+    assert len(short) <= 1, (case, short)      # as for the names: one case may fall short
     for c in effects:
         kind, true = next(iter(c["truth"].items()))
         if kind == "runout" and kind in c["params"]:
