@@ -14,6 +14,8 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from stages.geometry.sweeps import ragged_ranges
+
 # refined mesh edge (mm): fine enough for the pass spacing of a finish, coarse enough to draw
 EDGE_MM = 1.0
 # most faces of a refined mesh (a picture of ~2 s, a PLY of a few MB)
@@ -41,8 +43,8 @@ def surface_samples(points: pd.DataFrame) -> tuple[np.ndarray, np.ndarray, np.nd
     d = np.nan_to_num(d)
     k = np.maximum(1, np.ceil(np.linalg.norm(d, axis=1) / SAMPLE_MM).astype(int) + 1)
     row = np.repeat(np.arange(len(p)), k)
-    start = np.repeat(np.cumsum(k) - k, k)
-    s = np.where(np.repeat(k, k) > 1, (np.arange(row.size) - start) / np.maximum(np.repeat(k, k) - 1, 1) - 0.5, 0.0)
+    kk = np.repeat(k, k)
+    s = np.where(kk > 1, ragged_ranges(np.zeros(len(p)), k) / np.maximum(kk - 1, 1) - 0.5, 0.0)
     return g[row] + s[:, None] * d[row], n[row], p.err_um.to_numpy()[row]
 
 
@@ -110,8 +112,8 @@ def _faces_near(mesh, points: np.ndarray, radius_mm: float) -> np.ndarray:
 
 
 def interpolation_radius(xyz: np.ndarray) -> float:
-    """Search radius (mm): twice the median spacing of the samples' nearest neighbours of other
-    passes, at least 0.5 mm."""
+    """Search radius (mm): twice the median distance from a sample to its nearest other sample, plus
+    the sampling step, at least 0.5 mm."""
     from scipy.spatial import cKDTree
     if len(xyz) < 2:
         return 1.0

@@ -16,6 +16,7 @@ import time
 import traceback
 from pathlib import Path
 
+import numpy as np
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
@@ -92,7 +93,6 @@ def feed_summary(out: Path) -> dict:
 def warning_summary(out: Path) -> tuple[dict, dict]:
     """Per program: the warnings by reason with their first NC lines, and the stock along the normal
     its predicted passes meet (median, P95, max, mm)."""
-    import numpy as np
     warns, allowance = {}, {}
     d = Path(out) / "tables"
     for f in sorted((d / "warnings").glob("*.parquet")) if (d / "warnings").is_dir() else []:

@@ -63,8 +63,8 @@ def run(inputs: dict, params: dict) -> dict:
     rows = np.zeros(0, np.int64)
     if fr.num_rows:
         rows = match_passes(passes, col(fr, "pass_id", np.int64), "forces")
-        dc, de = _affine(inputs, params, passes, fr, rows)
         fz0 = col(fr, "feed_per_tooth_mm")
+        dc, de = _affine(inputs, params, passes, fr, fz0)
         per_rev = rpm[rows] * cutter.flutes
         cap = np.minimum(chip_max, f_max / per_rev)
         fz = largest_feed_per_tooth(dc, de, lim_um, cap)
@@ -87,8 +87,9 @@ def run(inputs: dict, params: dict) -> dict:
         peak1[rows] = peak_deflection(dc, de, feed_per_tooth_mm(new[rows], rpm[rows], cutter.flutes))
     dur = col(passes, "t_end_s") - col(passes, "t_start_s")
     dur_new = np.where(moving, dur * feed / new, dur)
-    fz_old = np.where(moving & (rpm > 0), feed / np.maximum(rpm * cutter.flutes, 1e-12), np.nan)
-    fz_new = np.where(moving & (rpm > 0), new / np.maximum(rpm * cutter.flutes, 1e-12), np.nan)
+    turning = moving & (rpm > 0)
+    fz_old = np.where(turning, feed_per_tooth_mm(feed, np.where(turning, rpm, 1.0), cutter.flutes), np.nan)
+    fz_new = np.where(turning, feed_per_tooth_mm(new, np.where(turning, rpm, 1.0), cutter.flutes), np.nan)
     table = pa.table({
         "program_id": passes.column("program_id"), "pass_id": passes.column("pass_id"),
         "line_no": passes.column("line_no"), "feed_mm_min": feed, "feed_new_mm_min": new,
@@ -101,8 +102,9 @@ def run(inputs: dict, params: dict) -> dict:
     return {"feeds": table}
 
 
-def _affine(inputs: dict, params: dict, passes: pa.Table, fr: pa.Table, rows: np.ndarray):
-    """(Dc, De) of every ``forces`` row: the forces as predicted and again at twice the feed."""
+def _affine(inputs: dict, params: dict, passes: pa.Table, fr: pa.Table, fz1: np.ndarray):
+    """(Dc, De) of every ``forces`` row (feed per tooth ``fz1``): the forces as predicted and again
+    at twice the feed."""
     frf = (params.get("machine") or {}).get("frf")
     rpm = col(fr, "spindle_rpm")
 
@@ -114,5 +116,4 @@ def _affine(inputs: dict, params: dict, passes: pa.Table, fr: pa.Table, rows: np
     f2 = forces_stage.run({"passes": doubled, "engagement": inputs["engagement"]}, params)["forces"]
     if f2.num_rows != fr.num_rows or not np.array_equal(col(f2, "pass_id", np.int64), col(fr, "pass_id", np.int64)):
         raise ValueError("feed: the forces at twice the feed do not line up with the forces table")
-    fz1 = col(fr, "feed_per_tooth_mm")
     return affine_deflection(deflection(fr), deflection(f2), fz1, 2.0 * fz1)

@@ -12,7 +12,8 @@ from __future__ import annotations
 import numpy as np
 import pyarrow as pa
 
-from stages.nc.lexer import INCH_MM, Problems, numbers
+from stages.geometry.sweeps import ragged_ranges
+from stages.nc.lexer import INCH_MM
 from stages.nc.writer import _format, _splice, scan_words
 from stages.tables import col
 
@@ -36,7 +37,7 @@ def block_feeds(blocks: pa.Table, passes: pa.Table, feeds: pa.Table) -> np.ndarr
     b0, b1 = col(passes, "block_no", np.int64)[k], col(passes, "block_end", np.int64)[k]
     f = col(feeds, "feed_new_mm_min")
     n = b1 - b0 + 1
-    blk = np.repeat(b0, n) + np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)
+    blk = ragged_ranges(b0, n)
     bno = col(blocks, "block_no", np.int64)
     rows = np.searchsorted(bno, blk)
     ok = (rows < bno.size) & (bno[np.minimum(rows, bno.size - 1)] == blk)
@@ -60,12 +61,8 @@ def write_feeds(data: bytes, blocks: pa.Table, feed_mm_min: np.ndarray) -> tuple
     line = col(blocks, "line_no", np.int64) - 1
     scale = np.where(col(blocks, "inch", bool), INCH_MM, 1.0)
     sc = scan_words(data)
-    is_f = sc["letter"] == ord("F")
-    fi = np.flatnonzero(is_f)
-    f_val = np.full(sc["letter"].size, np.nan)
-    if fi.size:
-        f_val[fi] = numbers(np.frombuffer(data, np.uint8), sc["vstart"][fi], sc["vend"][fi] - sc["vstart"][fi],
-                            sc["letter"][fi], sc["line"][fi], Problems("<program>"))
+    fi = np.flatnonzero(sc["letter"] == ord("F"))
+    f_val = sc["value"]
     dec = int(np.bincount(sc["decimals"][fi]).argmax()) if fi.size else 0
     unit = 10.0 ** -dec
     cutting = (motion >= 1) & (motion <= 3) & np.isfinite(feed_mm_min)

@@ -442,9 +442,9 @@ def scan_words(data: bytes) -> dict:
     wline = line_of[pos]
     first = np.concatenate(([True], wline[1:] != wline[:-1])) if pos.size else np.zeros(0, bool)
     blank_before = (pos > 0) & (cls[np.maximum(pos - 1, 0)] == BLANK)
-    # values: only needed for X Y Z I J K R (Python float on their text; exact like the parser)
+    # values: only needed for X Y Z I J K R and F (exactly as the parser reads them)
     value = np.full(pos.size, np.nan)
-    want = np.isin(UPPER[raw[pos]], np.frombuffer(b"XYZIJKR", np.uint8)) & has_v
+    want = np.isin(UPPER[raw[pos]], np.frombuffer(b"XYZIJKRF", np.uint8)) & has_v
     idx = np.flatnonzero(want)
     if idx.size:
         value[idx] = numbers(raw, vstart[idx], vend[idx] - vstart[idx], UPPER[raw[pos[idx]]],
