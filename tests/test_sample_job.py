@@ -15,6 +15,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import trimesh
+import yaml
 
 from tests.test_engine import readme_queries
 
@@ -41,7 +42,8 @@ def test_every_stage_runs_and_every_output_is_written(job):
     assert not summary["failures"] and summary["report_error"] is None
     programs = pd.read_parquet(out / "tables" / "programs")
     assert set(programs.status) == {"ok"} and all(not Path(p).is_absolute() for p in programs.path)
-    assert sorted(programs.path) == sorted(f"data_samples/nc/{p.name}" for p in (ROOT / "data_samples" / "nc").glob("*.nc"))
+    wf = yaml.safe_load((ROOT / "workflows" / "mould.yaml").read_text())
+    assert sorted(programs.path) == sorted(str(p.relative_to(ROOT)) for p in ROOT.glob(wf["programs"]))
     # the correction written is the one predicted to deviate least, and less than the program as written
     for pid, k in summary["kept"].items():
         devs = [r["rms_dev_um"] for r in summary["rounds"][pid]]

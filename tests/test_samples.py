@@ -16,6 +16,7 @@ import pytest
 import trimesh
 
 SAMPLES = Path(__file__).resolve().parents[1] / "data_samples"
+REST = SAMPLES / "rest_overload"
 R = 5.0  # T1: Ø10 ball (program header)
 INCH = 25.4
 FLOOR_Z = -1.05 * INCH  # pocket floor of ktoolcav.stl, 1.05 in below the parting face
@@ -28,7 +29,7 @@ def nominal():
 
 @pytest.fixture(scope="module")
 def semi():
-    return trimesh.load(SAMPLES / "models" / "semi.stl", force="mesh")
+    return trimesh.load(REST / "semi.stl", force="mesh")
 
 
 def distance_to(mesh, points):
@@ -110,12 +111,12 @@ def arc_points(m, n=16):
 
 @pytest.fixture(scope="module")
 def finish_moves():
-    return read_nc(SAMPLES / "nc" / "mould_finish_t1.nc")
+    return read_nc(REST / "nc" / "mould_finish_t1.nc")
 
 
 @pytest.fixture(scope="module")
 def contour_moves():
-    return read_nc(SAMPLES / "nc" / "mould_contour_t1.nc")
+    return read_nc(REST / "nc" / "mould_contour_t1.nc")
 
 
 # ---------------------------------------------------------------------------------- meshes
@@ -165,7 +166,7 @@ def test_semi_stock_is_0_2_mm_above_the_nominal(nominal, semi):
 
 # -------------------------------------------------------------------------------- programs
 def test_finishing_program_is_fanuc_shaped(finish_moves):
-    text = (SAMPLES / "nc" / "mould_finish_t1.nc").read_text().splitlines()
+    text = (REST / "nc" / "mould_finish_t1.nc").read_text().splitlines()
     assert text[0] == "%" and text[-1] == "%" and text[1].startswith("O1001 (MOULD FINISH T1)")
     body = "\n".join(text)
     for word in ("G90 G17 G21 G40 G49 G80", "T1 M6", "S12000 M3", "M5", "M30", "F1000", "F3000"):
@@ -207,7 +208,7 @@ def test_finishing_arcs_are_tangent_row_links_in_the_air(nominal, finish_moves):
 
 
 def test_contour_program_touches_walls_and_boss(nominal, contour_moves):
-    text = (SAMPLES / "nc" / "mould_contour_t1.nc").read_text()
+    text = (REST / "nc" / "mould_contour_t1.nc").read_text()
     assert ";" in text and re.search(r"\bR\d", text) and re.search(r"\bK-?\d", text)
     g1 = [m for m in contour_moves if m["g"] == 1 and m["start"][2] < -5 and m["end"][2] < -5
           and abs(m["end"][2] - m["start"][2]) < 1e-9]
