@@ -339,3 +339,36 @@ def test_the_machine_imports_nothing_of_the_prediction():
             for name in names:
                 if name.split(".")[0] == "stages":
                     assert name == "stages.InputError" or name.startswith(allowed), f"{f.name} imports {name}"
+
+
+def _rows(program_id, z, ys, x0=-12.0, x1=12.0, t0=0.0, feed=1000.0):
+    """Zig-zag rows along X at height ``z`` (tool tips), one pass a row, times from ``t0``."""
+    p0 = [(x0 if k % 2 == 0 else x1, y, z) for k, y in enumerate(ys)]
+    p1 = [(x1 if k % 2 == 0 else x0, y, z) for k, y in enumerate(ys)]
+    n = len(p0)
+    dur = abs(x1 - x0) / feed * 60.0
+    return pa.table({"program_id": [program_id] * n, "pass_id": pa.array(range(n), pa.int32()),
+                     "motion": pa.array([1] * n, pa.int8()),
+                     **{f"{a}{e}_mm": [p[i] for p in pts] for e, pts in ((0, p0), (1, p1)) for i, a in enumerate("xyz")},
+                     "feed_mm_min": [feed] * n, "spindle_rpm": [10000.0] * n,
+                     "t_start_s": [t0 + k * dur for k in range(n)], "t_end_s": [t0 + (k + 1) * dur for k in range(n)]})
+
+
+def test_a_program_after_another_meets_what_the_first_left_as_if_both_were_one_program():
+    # program 2 (rows y = 0…2 at the floor) after program 1 (rows y = −2…1 half as deep): its
+    # engagement chained after program 1 is that of its passes at the end of one program holding both
+    stock = {"box": [-30, -30, -20, 30, 30, 0]}
+    first = _rows("a", -0.3, np.arange(-2.0, 1.01, 0.5))
+    second = _rows("b", -0.6, np.arange(0.0, 2.01, 0.5), t0=100.0)
+    both = pa.concat_tables([first, second.set_column(0, "program_id", pa.array(["a"] * len(second)))
+                             .set_column(1, "pass_id", pa.array(range(len(first), len(first) + len(second)), pa.int32()))])
+    alone = VirtualMachine(second, tool(), MAT, RIGID, stock)
+    chained = VirtualMachine(second, tool(), MAT, RIGID, stock, earlier=[(first, tool())])
+    joined = VirtualMachine(both, tool(), MAT, RIGID, stock)
+    want = joined.engaged[len(first):]
+    assert np.array_equal(chained.engaged, want)
+    assert np.unpackbits(alone.engaged).sum() > 1.3 * np.unpackbits(want).sum()    # the first took material
+    # a first program with a larger tool: the cut it leaves differs, and the chained machine sees it
+    big = {**tool(), "diameter_mm": 16.0}
+    other = VirtualMachine(second, tool(), MAT, RIGID, stock, earlier=[(first, big)])
+    assert not np.array_equal(other.engaged, chained.engaged)

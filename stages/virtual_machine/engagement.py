@@ -121,7 +121,7 @@ def inside_tool(x, a, ab, R, side):
     Parameters
     ----------
     x, a, ab : (n, 3) float
-    R, side : float
+    R, side : float or (n,) float
 
     Returns
     -------
@@ -146,13 +146,13 @@ def inside_tool(x, a, ab, R, side):
 
 
 def engagement(path: Path3, stations: Stations, stock_h, radius_mm: float, stickout_mm: float,
-               k_near: int = K_NEAR, max_points: int = 400_000) -> np.ndarray:
+               k_near: int = K_NEAR, max_points: int = 400_000, earlier=()) -> np.ndarray:
     """Engaged micro-edges at each station's mid point.
 
     A micro-edge is engaged when it lies below the stock's top and outside the tool (ball and
-    cylindrical side up to the stick-out) of every earlier pass. Only the levels below the
-    stock's top around a pass are tested (a finishing pass touches a thin band; a wall pass
-    its height).
+    cylindrical side up to the stick-out) of every earlier pass, of this program and of the
+    programs machined before it on the same stock. Only the levels below the stock's top around
+    a pass are tested (a finishing pass touches a thin band; a wall pass its height).
 
     Parameters
     ----------
@@ -166,6 +166,8 @@ def engagement(path: Path3, stations: Stations, stock_h, radius_mm: float, stick
         sub-segment in reach at once. The answer is the same: only the time changes.
     max_points : int
         Micro-edges tested at a time (bounds the memory).
+    earlier : sequence of (Path3, radius_mm, stickout_mm)
+        The ball-centre paths and tools of the programs machined before this one, in order.
 
     Returns
     -------
@@ -180,8 +182,6 @@ def engagement(path: Path3, stations: Stations, stock_h, radius_mm: float, stick
     n_lev = len(zc)
     phi = (np.arange(N_PHI) + 0.5) * 2 * np.pi / N_PHI              # from the feed direction, CCW
     d = p.c1 - p.c0
-    P = len(d)
-    ln = p.length
     st = stations.pass_row
     mid = stations.mid
     S = len(mid)
@@ -192,16 +192,21 @@ def engagement(path: Path3, stations: Stations, stock_h, radius_mm: float, stick
     top = np.maximum(top, stock_h(mid[:, 0], mid[:, 1]))
     height = top - (mid[:, 2] - R)                                    # above the tip
     n_of = np.where(np.isfinite(height), np.searchsorted(zc, height, side="right"), 0).astype(np.int64)
-    # earlier passes as exact sub-segments of at most 2 mm, found by their plan-view midpoints
-    nsub = np.maximum(1, np.ceil(ln / 2.0).astype(np.int64))
-    sub_owner = np.repeat(np.arange(P), nsub)
-    k_sub = np.arange(nsub.sum()) - np.repeat(np.cumsum(nsub) - nsub, nsub)
-    sub_ab = d[sub_owner] / nsub[sub_owner, None]
-    sub_a = p.c0[sub_owner] + k_sub[:, None] * sub_ab
+    # earlier passes as exact sub-segments of at most 2 mm, found by their plan-view midpoints;
+    # the earlier programs' passes come first, owned by pass -1 (before every pass of this one)
+    sub_owner, sub_a, sub_ab, sub_r, sub_side = [], [], [], [], []
+    for k, (path_k, r_k, stick_k) in enumerate([*earlier, (p, R, stickout_mm)]):
+        own = k == len(earlier)
+        o, a_, ab_ = _sub_segments(path_k)
+        sub_owner.append(o if own else np.full(len(o), -1))
+        sub_a.append(a_)
+        sub_ab.append(ab_)
+        sub_r.append(np.full(len(o), float(r_k)))
+        sub_side.append(np.full(len(o), float(stick_k - r_k)))     # cylinder above the centre
+    sub_owner, sub_a, sub_ab, sub_r, sub_side = map(np.concatenate, (sub_owner, sub_a, sub_ab, sub_r, sub_side))
     tree = cKDTree((sub_a + 0.5 * sub_ab)[:, :2])
     tree3 = cKDTree(sub_a + 0.5 * sub_ab)
-    reach = R + 0.5 * float((ln / nsub).max()) + 1e-6
-    side = stickout_mm - R                                            # cylinder above the centre
+    reach = float(sub_r.max()) + 0.5 * float(np.linalg.norm(sub_ab[:, :2], axis=1).max()) + 1e-6
     eng = np.zeros((S, n_lev, (N_PHI + 7) // 8), np.uint8)
     rad = np.where(kappa < np.pi / 2 - 1e-12, R * np.sin(kappa), R)
     dzc = zc - R                                                      # relative to the centre
@@ -232,15 +237,26 @@ def engagement(path: Path3, stations: Stations, stock_h, radius_mm: float, stick
                 sj = near.reshape(-1)
                 ok = sub_owner[sj] < st[owner[pi]]
                 pi, sj = pi[ok], sj[ok]
-                removed[pi[inside_tool(pts[pi], sub_a[sj], sub_ab[sj], R, side)]] = True
+                removed[pi[inside_tool(pts[pi], sub_a[sj], sub_ab[sj], sub_r[sj], sub_side[sj])]] = True
                 cand_idx = cand_idx[~removed[cand_idx]]
             if cand_idx.size:
                 sdm = tree.sparse_distance_matrix(cKDTree(pts[cand_idx, :2]), reach, output_type="ndarray")
                 sj, pi = sdm["i"].astype(np.int64), cand_idx[sdm["j"]]
                 ok = sub_owner[sj] < st[owner[pi]]          # earlier passes only
                 pi, sj = pi[ok], sj[ok]
-                removed[pi[inside_tool(pts[pi], sub_a[sj], sub_ab[sj], R, side)]] = True
+                removed[pi[inside_tool(pts[pi], sub_a[sj], sub_ab[sj], sub_r[sj], sub_side[sj])]] = True
             E = (inside & ~removed).reshape(-1, N_PHI)
             eng[rows, lev] = np.packbits(E, axis=1)
         s0 = s1
     return eng
+
+
+def _sub_segments(path: Path3):
+    """A path's centre segments cut into equal sub-segments of at most 2 mm: (owner pass row,
+    start, vector) of each."""
+    d = path.c1 - path.c0
+    nsub = np.maximum(1, np.ceil(path.length / 2.0).astype(np.int64))
+    owner = np.repeat(np.arange(len(d)), nsub)
+    k = np.arange(nsub.sum()) - np.repeat(np.cumsum(nsub) - nsub, nsub)
+    ab = d[owner] / nsub[owner, None]
+    return owner, path.c0[owner] + k[:, None] * ab, ab
