@@ -1,0 +1,191 @@
+"""The closed loop of a whole job, checked on the virtual machine (issue 58; a bench, not a CI test).
+
+``pipeline run`` predicts every program of the workflow and writes the corrected programs. Then
+every program, in machining order on one stock, is machined on ``stages/virtual_machine/`` (discrete
+flutes, time-domain dynamics of the modes it fits to the workflow's FRF, the tool's measured
+profile, its own engagement with the earlier programs' cuts; no prediction code) three times:
+
+- the reference: the programs as written, nominal tool, rigid machine (cusps and feed marks, which
+  no path correction removes, are not counted as error);
+- the programs as written on the real machine;
+- the corrected programs (the kept correction of each, else the program as written) on the real
+  machine, each after the earlier corrected programs.
+
+The finished surface is probed on the reference's own plan (``grid_plan`` of each program, every
+``--spacing`` mm along the passes' contact lines); at each point the surface is the deepest cut of
+any program. The spindle's start angle is not something a path correction controls: each machining
+is probed with the spindle started at ``--angles`` angles spread over one tooth period (one
+revolution with runout), and the figure is the RMS over the points of all angles, after / before.
+
+    python bench/closed_loop_job.py [workflows/mould.yaml] [--out runs/closed_loop] [--angles 8]
+        [--spacing 0.25] [--vm-step-mm 0.5] [--workers 2]
+
+Writes ``<out>/closed_loop.json`` (figures by program and by contact-angle band, timings) and
+``<out>/points.parquet`` (every probe point: program, q, error before and after, mean over angles).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+Q_BANDS = ((0.0, 30.0, "q<30"), (30.0, 60.0, "q30-60"), (60.0, 91.0, "q>=60"))
+
+
+def job(workflow: Path, out: Path) -> list[dict]:
+    """The workflow's programs in machining order: id, T number, text as written and as corrected,
+    and the workflow entries the machine reads for it."""
+    import pyarrow.parquet as pq
+
+    from pipeline.config import load_workflow, program_paths, resolve
+    from pipeline.engine import program_ids
+    wf, base = load_workflow(workflow)
+    tools = dict(zip(*(pq.read_table(out / "tables" / "programs").column(c).to_pylist() for c in ("program_id", "tool"))))
+    paths = program_paths(wf, base)
+    stock = str(resolve(base, wf.stock)) if isinstance(wf.stock, str) else wf.stock.model_dump()
+    progs = []
+    for pid, path in zip(program_ids(paths, base), paths):
+        corrected = out / "nc" / path.name
+        p = {**wf.params(("tool", "material", "machine", "split"), tools.get(pid), base), "stock": stock}
+        progs.append({"id": pid, "t": tools.get(pid), "text": path.read_bytes(),
+                      "corrected": corrected.read_bytes() if corrected.is_file() else None, "params": p})
+    return progs
+
+
+def passes(text: bytes, p: dict):
+    from stages.nc.moves import split_blocks
+    from stages.nc.reader import parse_program
+    b, _ = parse_program(text, "vm.nc", "vm")
+    return split_blocks(b, {"split": p["split"], "machine": p["machine"], "tool": nominal(p["tool"])})
+
+
+def nominal(tool: dict) -> dict:
+    return {k: v for k, v in tool.items() if k != "profile"}
+
+
+def machine(progs: list[dict], k: int, variant: str, step_mm: float):
+    """Program ``k`` of the job loaded on the virtual machine after the earlier ones."""
+    from stages.virtual_machine import VirtualMachine
+    rigid = variant == "reference"
+    def text(g):
+        return (g["corrected"] or g["text"]) if variant == "corrected" else g["text"]
+    earlier = [(passes(text(g), g["params"]), nominal(g["params"]["tool"]) if rigid else g["params"]["tool"])
+               for g in progs[:k]]
+    p = progs[k]["params"]
+    frf = {a: [{"fn_hz": 900.0, "zeta": 0.03, "k_n_per_um": 1e9}] for a in "xy"} if rigid else p["machine"]["frf"]
+    return VirtualMachine(passes(text(progs[k]), p), nominal(p["tool"]) if rigid else p["tool"], p["material"],
+                          {"frf": frf}, p["stock"], deflection_step_mm=None if rigid else step_mm, earlier=earlier)
+
+
+def probe_angles(vm, pts, nrm, angles: int, deflection=None) -> np.ndarray:
+    """(angles, points) deviation (µm) with the spindle started k/``angles`` of its period on."""
+    t0, t1 = vm.path.t0.copy(), vm.path.t1.copy()
+    period = 60.0 / vm.path.rpm / (1 if vm.base_runout else vm.flutes)
+    out = []
+    for a in range(angles):
+        vm.path.t0, vm.path.t1 = t0 + a / angles * period, t1 + a / angles * period
+        out.append(vm.probe(pts, nrm, deflection=deflection))
+    vm.path.t0, vm.path.t1 = t0, t1
+    return np.stack(out)
+
+
+def machined(progs, k, variant, step_mm, pts, nrm, angles):
+    t = time.perf_counter()
+    vm = machine(progs, k, variant, step_mm)
+    dev = probe_angles(vm, pts, nrm, angles)
+    return dev, time.perf_counter() - t
+
+
+def plan(progs, spacing):
+    """The reference's probe plan of every program and its rigid, nominal-tool surface there."""
+    from stages.virtual_machine import N_ROT, grid_plan
+    vms = [machine(progs, k, "reference", None) for k in range(len(progs))]
+    parts = [grid_plan(vm, spacing) for vm in vms]
+    pts = np.concatenate([p for p, _ in parts])
+    nrm = np.concatenate([n for _, n in parts])
+    owner = np.repeat(np.arange(len(parts)), [len(p) for p, _ in parts])
+    still = [(np.zeros((len(vm.stations.pass_row), N_ROT)),) * 2 for vm in vms]
+    ideal = np.min([vm.probe(pts, nrm, deflection=s) for vm, s in zip(vms, still)], axis=0)
+    return pts, nrm, owner, ideal
+
+
+def rms(x) -> float:
+    x = np.asarray(x, float)
+    return float(np.sqrt(np.mean(x[np.isfinite(x)] ** 2)))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("workflow", nargs="?", default=str(ROOT / "workflows/mould.yaml"))
+    ap.add_argument("--out", type=Path, default=ROOT / "runs/closed_loop")
+    ap.add_argument("--angles", type=int, default=8)
+    ap.add_argument("--spacing", type=float, default=0.25, help="probe spacing along the passes, mm")
+    ap.add_argument("--vm-step-mm", type=float, default=0.5, help="the machine's deflection step along the path")
+    ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    args = ap.parse_args(argv)
+    from click.testing import CliRunner
+
+    from pipeline.cli import main as cli
+    t0 = time.perf_counter()
+    run = args.out / "run"
+    r = CliRunner().invoke(cli, ["run", args.workflow, "--out", str(run), "--workers", str(args.workers), "-q"])
+    t_pipe = time.perf_counter() - t0
+    if r.exit_code != 0:
+        print(r.output)
+        return 1
+    progs = job(Path(args.workflow), run)
+    t1 = time.perf_counter()
+    pts, nrm, owner, ideal = plan(progs, args.spacing)
+    t_plan = time.perf_counter() - t1
+    jobs = [(k, v) for v in ("original", "corrected") for k in range(len(progs))
+            if v == "original" or progs[k]["corrected"] is not None]
+    with ProcessPoolExecutor(max(1, min(args.workers, len(jobs)))) as pool:
+        futs = {j: pool.submit(machined, progs, j[0], j[1], args.vm_step_mm, pts, nrm, args.angles) for j in jobs}
+        res = {j: f.result() for j, f in futs.items()}
+    dev = {}
+    for v in ("original", "corrected"):
+        per = [res[(k, v)][0] if (k, v) in res else res[(k, "original")][0] for k in range(len(progs))]
+        dev[v] = np.min(per, axis=0) - ideal[None, :]           # (angles, points)
+    q = np.degrees(np.arccos(np.clip(nrm[:, 2], -1, 1)))
+    before, after = dev["original"], dev["corrected"]
+    summary = {
+        "workflow": args.workflow, "points": int(len(pts)), "angles": args.angles, "spacing_mm": args.spacing,
+        "rms_before_um": rms(before), "rms_after_um": rms(after), "ratio_pct": 100 * rms(after) / rms(before),
+        "by_angle_pct": [100 * rms(a) / rms(b) for a, b in zip(after, before)],
+        "by_program": {g["id"]: {"points": int((owner == k).sum()), "corrected": g["corrected"] is not None,
+                                 "rms_before_um": rms(before[:, owner == k]), "rms_after_um": rms(after[:, owner == k])}
+                       for k, g in enumerate(progs)},
+        "by_band": {name: {"points": int(((q >= lo) & (q < hi)).sum()), "rms_before_um": rms(before[:, (q >= lo) & (q < hi)]),
+                           "rms_after_um": rms(after[:, (q >= lo) & (q < hi)])} for lo, hi, name in Q_BANDS},
+        "time_s": {"pipeline": t_pipe, "plan": t_plan, "machine": {f"{g['id']}:{v}": res[(k, v)][1] for k, v in res
+                                                                   for g in [progs[k]]},
+                   "total": time.perf_counter() - t0},
+    }
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "closed_loop.json").write_text(json.dumps(summary, indent=1))
+    import pandas as pd
+    pd.DataFrame({"program_id": [progs[k]["id"] for k in owner], "x_mm": pts[:, 0], "y_mm": pts[:, 1], "z_mm": pts[:, 2],
+                  "q_deg": q, "before_um": before.mean(0), "after_um": after.mean(0),
+                  "before_rms_um": np.sqrt((before ** 2).mean(0)), "after_rms_um": np.sqrt((after ** 2).mean(0))}
+                 ).to_parquet(args.out / "points.parquet")
+    print(f"{len(pts)} points × {args.angles} spindle start angles: error RMS {summary['rms_before_um']:.2f} µm → "
+          f"{summary['rms_after_um']:.2f} µm = {summary['ratio_pct']:.1f} % (per angle "
+          f"{min(summary['by_angle_pct']):.1f}–{max(summary['by_angle_pct']):.1f} %)")
+    for pid, f in summary["by_program"].items():
+        print(f"  {pid}: {f['points']} points, {f['rms_before_um']:.2f} → {f['rms_after_um']:.2f} µm")
+    for name, f in summary["by_band"].items():
+        print(f"  {name}: {f['points']} points, {f['rms_before_um']:.2f} → {f['rms_after_um']:.2f} µm")
+    print(f"time: pipeline {t_pipe:.0f} s, plan {t_plan:.0f} s, total {summary['time_s']['total']:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
