@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pyarrow as pa
 import pytest
+from hypothesis import given, settings, strategies as st
 
 from stages.virtual_machine import STEP_SLACK, VirtualMachine
 
@@ -372,3 +373,28 @@ def test_a_program_after_another_meets_what_the_first_left_as_if_both_were_one_p
     big = {**tool(), "diameter_mm": 16.0}
     other = VirtualMachine(second, tool(), MAT, RIGID, stock, earlier=[(first, big)])
     assert not np.array_equal(other.engaged, chained.engaged)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2 ** 31 - 1))
+def test_inside_the_swept_tool_against_dense_tool_positions(seed):
+    # brute force: the tool (ball + cylinder up to the stick-out) at 4001 positions along the
+    # segment; points within 5 µm of the swept boundary (the sampling's reach) are not judged
+    from stages.virtual_machine import inside_tool
+    rng = np.random.default_rng(seed)
+    n = 400
+    a = rng.uniform(-3, 3, (n, 3))
+    ab = rng.normal(0, 3, (n, 3)) * rng.choice([0.0, 0.3, 1.0], (n, 1), p=[0.1, 0.3, 0.6]) ** [0, 0, 1]
+    R = rng.uniform(1.0, 5.0, n)
+    side = rng.uniform(0.0, 10.0, n)
+    x = a + rng.uniform(-8, 8, (n, 3))
+    t = np.linspace(0, 1, 4001)
+    c = a[:, None, :] + t[None, :, None] * ab[:, None, :]
+    ball = np.linalg.norm(c - x[:, None, :], axis=2) - R[:, None]
+    plan = np.linalg.norm((c - x[:, None, :])[..., :2], axis=2) - R[:, None]
+    above = np.minimum(x[:, None, 2] - c[..., 2], c[..., 2] + side[:, None] - x[:, None, 2])
+    margin = np.minimum(ball, np.maximum(plan, -above)).min(1)      # < 0 inside, > 0 outside
+    judged = np.abs(margin) > 5e-3
+    got = inside_tool(x, a, ab, R, side)
+    assert judged.sum() > 0.9 * n
+    assert np.array_equal(got[judged], (margin < 0)[judged])

@@ -127,9 +127,23 @@ def inside_tool(x, a, ab, R, side):
     -------
     (n,) bool
     """
-    ab2 = np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-30)
-    u = np.clip(np.einsum("ij,ij->i", x - a, ab) / ab2, 0, 1)
-    ball = np.linalg.norm(a + u[:, None] * ab - x, axis=1) < R - 1e-6
+    n = len(x)
+    R = np.broadcast_to(np.asarray(R, float), (n,))
+    side = np.broadcast_to(np.asarray(side, float), (n,))
+    xa = x - a
+    u = np.clip(np.einsum("ij,ij->i", xa, ab) / np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-30), 0, 1)
+    r = xa - u[:, None] * ab
+    out = np.einsum("ij,ij->i", r, r) < (R - 1e-6) ** 2
+    # the side only where a centre of the segment lies at or below the point (a finishing row's
+    # neighbours pass above its contact points: most pairs end here)
+    k = np.flatnonzero(~out & (np.minimum(a[:, 2], a[:, 2] + ab[:, 2]) <= x[:, 2]))
+    if len(k):
+        out[k] = _inside_side(x[k], a[k], ab[k], R[k], side[k])
+    return out
+
+
+def _inside_side(x, a, ab, R, side):
+    """The cylindrical side of :func:`inside_tool`."""
     dz = ab[:, 2]
     flat = np.abs(dz) < 1e-12
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -141,8 +155,7 @@ def inside_tool(x, a, ab, R, side):
                         np.maximum(s_a, s_b) >= 0) & (np.minimum(s_a, s_b) <= 1)
     abxy2 = np.maximum(np.einsum("ij,ij->i", ab[:, :2], ab[:, :2]), 1e-30)
     w = np.clip(np.einsum("ij,ij->i", (x - a)[:, :2], ab[:, :2]) / abxy2, lo, hi)
-    cyl = level_ok & (np.linalg.norm(a[:, :2] + w[:, None] * ab[:, :2] - x[:, :2], axis=1) < R - 1e-6)
-    return ball | cyl
+    return level_ok & (np.linalg.norm(a[:, :2] + w[:, None] * ab[:, :2] - x[:, :2], axis=1) < R - 1e-6)
 
 
 def engagement(path: Path3, stations: Stations, stock_h, radius_mm: float, stickout_mm: float,
