@@ -18,10 +18,10 @@ from stages.surface.allowance import stock_along_normal
 from stages.tables import col, match_passes, pick_entry, program_tool_number
 
 NAME = "warn"
-VERSION = "2"
+VERSION = "3"
 INPUTS = ("passes", "cut_filter", "generating", "engagement", "errors", "feeds")
 OUTPUTS = ("allowance", "warnings")
-PARAMS = ("tool", "correct.max_move_um", "warnings")
+PARAMS = ("tool", "correct.max_move_um", "warnings", "feed.max_deflection_um")
 
 DEFAULTS = {"allowance_mm": None, "rest_factor": 3.0}
 

@@ -72,6 +72,8 @@ def test_limits_are_kept_and_an_overload_at_the_minimum_feed_is_flagged(tmp_path
     f = pd.read_parquet(out / "tables" / "feeds").sort_values("pass_id")
     pred = f.peak_deflection_um.notna()
     assert pred.sum() >= 3 and f.overloaded[pred].all() and np.allclose(f.feed_new_mm_min[pred], 300)
+    w = pd.read_parquet(out / "tables" / "warnings").query("reason == 'overloaded'")
+    assert set(w.pass_id) == set(f.pass_id[pred]) and np.allclose(w.limit, 1e-3), w
     moving = f[f.limited_by != "rapid"]
     assert moving.feed_new_mm_min.between(300 * (1 - 1e-12), 6000).all()
     ratio = moving.feed_new_mm_min.to_numpy()
