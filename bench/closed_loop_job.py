@@ -71,6 +71,10 @@ def nominal(tool: dict) -> dict:
     return {k: v for k, v in tool.items() if k != "profile"}
 
 
+def text_of(g: dict, variant: str) -> bytes:
+    return (g["corrected"] or g["text"]) if variant == "corrected" else g["text"]
+
+
 def machine(progs: list[dict], k: int, variant: str, step_mm: float):
     """Program ``k`` of the job loaded on the virtual machine after the earlier ones."""
     from stages.virtual_machine import VirtualMachine
@@ -98,10 +102,17 @@ def probe_angles(vm, pts, nrm, angles: int, deflection=None) -> np.ndarray:
 
 
 def machined(progs, k, variant, step_mm, pts, nrm, angles):
+    """(deviation (angles, points), the machine's peak deflection (µm) and NC line of each cutting
+    pass, seconds)."""
     t = time.perf_counter()
     vm = machine(progs, k, variant, step_mm)
     dev = probe_angles(vm, pts, nrm, angles)
-    return dev, time.perf_counter() - t
+    dx, dy = vm.deflection()
+    peak = np.zeros(len(vm.path.pass_id))
+    np.maximum.at(peak, vm.stations.pass_row, np.hypot(dx, dy).max(axis=1))
+    p = passes(text_of(progs[k], variant), progs[k]["params"])
+    line = dict(zip(p.column("pass_id").to_pylist(), p.column("line_no").to_pylist()))
+    return dev, peak, np.array([line[i] for i in vm.path.pass_id]), time.perf_counter() - t
 
 
 def plan(progs, spacing):
@@ -117,9 +128,40 @@ def plan(progs, spacing):
     return pts, nrm, owner, ideal
 
 
+def feeds(progs, res, run: Path, workflow) -> dict | None:
+    """With a ``feed:`` section: the machine's peak deflection per pass against the limit, for the
+    scheduled programs (``corrected``: coordinates and F words) and the programs as written, and
+    whether the passes over it are in the ``warnings`` table (program, NC line)."""
+    import pyarrow.parquet as pq
+
+    from pipeline.config import load_workflow
+    wf, _ = load_workflow(workflow)
+    if wf.feed is None:
+        return None
+    limit = float(wf.feed.max_deflection_um)
+    w = pq.read_table(run / "tables" / "warnings").to_pydict()
+    warned = set(zip(w["program_id"], w["line_no"]))
+    out = {"limit_um": limit}
+    for v, tol, name in (("corrected", 1.1, "scheduled"), ("original", 1.0, "original")):
+        over, total, hit, worst = 0, 0, 0, []
+        for k, g in enumerate(progs):
+            if (k, v) not in res:
+                continue
+            _, peak, line, _ = res[(k, v)]
+            bad = peak > tol * limit
+            total += len(peak)
+            over += int(bad.sum())
+            hit += sum((g["id"], int(x)) in warned for x in line[bad])
+            worst += [(float(p), g["id"], int(x)) for p, x in zip(peak[bad], line[bad])]
+        out.update({f"{name}_passes": total, f"{name}_over": over, f"{name}_over_warned": hit,
+                    f"{name}_worst": sorted(worst, reverse=True)[:10]})
+    return out
+
+
 def rms(x) -> float:
     x = np.asarray(x, float)
-    return float(np.sqrt(np.mean(x[np.isfinite(x)] ** 2)))
+    x = x[np.isfinite(x)]
+    return float(np.sqrt(np.mean(x ** 2))) if len(x) else float("nan")
 
 
 def main(argv=None) -> int:
@@ -145,11 +187,13 @@ def main(argv=None) -> int:
     t1 = time.perf_counter()
     pts, nrm, owner, ideal = plan(progs, args.spacing)
     t_plan = time.perf_counter() - t1
-    jobs = [(k, v) for v in ("original", "corrected") for k in range(len(progs))
-            if v == "original" or progs[k]["corrected"] is not None]
+    # a program is machined again for the corrected job when it or an earlier one was corrected
+    changed = np.cumsum([g["corrected"] is not None for g in progs]) > 0
+    jobs = [(k, v) for v in ("original", "corrected") for k in range(len(progs)) if v == "original" or changed[k]]
     with ProcessPoolExecutor(max(1, min(args.workers, len(jobs)))) as pool:
         futs = {j: pool.submit(machined, progs, j[0], j[1], args.vm_step_mm, pts, nrm, args.angles) for j in jobs}
         res = {j: f.result() for j, f in futs.items()}
+    feed_check = feeds(progs, res, run, args.workflow)
     dev = {}
     for v in ("original", "corrected"):
         per = [res[(k, v)][0] if (k, v) in res else res[(k, "original")][0] for k in range(len(progs))]
@@ -165,7 +209,8 @@ def main(argv=None) -> int:
                        for k, g in enumerate(progs)},
         "by_band": {name: {"points": int(((q >= lo) & (q < hi)).sum()), "rms_before_um": rms(before[:, (q >= lo) & (q < hi)]),
                            "rms_after_um": rms(after[:, (q >= lo) & (q < hi)])} for lo, hi, name in Q_BANDS},
-        "time_s": {"pipeline": t_pipe, "plan": t_plan, "machine": {f"{g['id']}:{v}": res[(k, v)][1] for k, v in res
+        "feed": feed_check,
+        "time_s": {"pipeline": t_pipe, "plan": t_plan, "machine": {f"{g['id']}:{v}": res[(k, v)][-1] for k, v in res
                                                                    for g in [progs[k]]},
                    "total": time.perf_counter() - t0},
     }
@@ -183,6 +228,11 @@ def main(argv=None) -> int:
         print(f"  {pid}: {f['points']} points, {f['rms_before_um']:.2f} → {f['rms_after_um']:.2f} µm")
     for name, f in summary["by_band"].items():
         print(f"  {name}: {f['points']} points, {f['rms_before_um']:.2f} → {f['rms_after_um']:.2f} µm")
+    if feed_check:
+        print(f"  feed limit {feed_check['limit_um']:g} µm: the machine's peak deflection over it +10 % on "
+              f"{feed_check['scheduled_over']} of {feed_check['scheduled_passes']} passes of the scheduled programs "
+              f"({feed_check['scheduled_over_warned']} of them warned); the programs as written over it on "
+              f"{feed_check['original_over']} passes, {feed_check['original_over_warned']} of them in `warnings`")
     print(f"time: pipeline {t_pipe:.0f} s, plan {t_plan:.0f} s, total {summary['time_s']['total']:.0f} s")
     return 0
 
