@@ -398,3 +398,32 @@ def test_inside_the_swept_tool_against_dense_tool_positions(seed):
     got = inside_tool(x, a, ab, R, side)
     assert judged.sum() > 0.9 * n
     assert np.array_equal(got[judged], (margin < 0)[judged])
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2 ** 31 - 1))
+def test_removed_points_are_those_inside_an_earlier_pass_s_tool(seed):
+    # the indexed look-up (nearest first, then by 3-D or plan reach with the side index) against
+    # every (point, earlier sub-segment) pair tested directly
+    from types import SimpleNamespace
+
+    from stages.virtual_machine.removal import SweptPasses, inside_tool
+    rng = np.random.default_rng(seed)
+    paths = []
+    for radius, stick in ((3.0, 20.0), (1.5, 8.0)):
+        n = int(rng.integers(1, 30))
+        c0 = rng.uniform([0, 0, -2], [20, 20, 4], (n, 3))
+        c1 = c0 + rng.normal(0, 3, (n, 3)) * [1, 1, 0.5]
+        paths.append((SimpleNamespace(c0=c0, c1=c1, length=np.linalg.norm(c1 - c0, axis=1)), radius, stick))
+    swept = SweptPasses(paths)
+    pts = rng.uniform([-2, -2, -4], [22, 22, 6], (4000, 3))
+    before = rng.integers(0, len(paths[-1][0].c0) + 1, len(pts))
+    got = swept.removed(pts, before, k_near=int(rng.integers(0, 9)))
+    want = np.zeros(len(pts), bool)
+    for k, (path, radius, stick) in enumerate(paths):
+        for j in range(len(path.c0)):
+            earlier = before > j if k == len(paths) - 1 else np.ones(len(pts), bool)
+            hit = inside_tool(pts, np.repeat(path.c0[j:j + 1], len(pts), 0),
+                              np.repeat(path.c1[j:j + 1] - path.c0[j:j + 1], len(pts), 0), radius, stick - radius)
+            want |= earlier & hit
+    assert want.sum() > 0 and np.array_equal(got, want)

@@ -5,7 +5,7 @@ Micro-edges of the ball (:data:`N_Z` levels) and of the cylindrical side up to t
 a deflection step the mid point of each of its equal pieces of at most that length, so that the
 deflection's resolution along the path does not follow the program's blocks) are in the material
 when they lie below the stock (a height field, ``stock.py``) and outside the tool (ball and side)
-swept along every earlier pass (exact distances to the candidate passes from a plan-view KD-tree).
+swept along every earlier pass (exact tests, ``removal.py``).
 """
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ import numpy as np
 
 from stages import InputError
 from stages.geometry.paths import Path3
+from stages.virtual_machine.removal import SweptPasses
 
 # Grid fine enough that the simulated error has converged: a finishing crescent is only a few
 # tenths of a millimetre wide, and on a coarser grid (30 × 96 × 96) the error jumped by ±5 µm from
@@ -111,53 +112,6 @@ def edge_grid(radius_mm: float, stickout_mm: float):
             np.concatenate([ds, np.full(n_side, SHANK_DZ_MM)]))
 
 
-def inside_tool(x, a, ab, R, side):
-    """Is point x inside the tool swept along the ball-centre segment a → a + ab (per row)?
-
-    The tool is a ball of radius R on a cylinder of radius R reaching ``side`` above the centre.
-    Ball: distance to the segment < R. Side: for the part of the segment whose centre height lies
-    in [x_z − side, x_z], the plan-view distance to it < R.
-
-    Parameters
-    ----------
-    x, a, ab : (n, 3) float
-    R, side : float or (n,) float
-
-    Returns
-    -------
-    (n,) bool
-    """
-    n = len(x)
-    R = np.broadcast_to(np.asarray(R, float), (n,))
-    side = np.broadcast_to(np.asarray(side, float), (n,))
-    xa = x - a
-    u = np.clip(np.einsum("ij,ij->i", xa, ab) / np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-30), 0, 1)
-    r = xa - u[:, None] * ab
-    out = np.einsum("ij,ij->i", r, r) < (R - 1e-6) ** 2
-    # the side only where a centre of the segment lies at or below the point (a finishing row's
-    # neighbours pass above its contact points: most pairs end here)
-    k = np.flatnonzero(~out & (np.minimum(a[:, 2], a[:, 2] + ab[:, 2]) <= x[:, 2]))
-    if len(k):
-        out[k] = _inside_side(x[k], a[k], ab[k], R[k], side[k])
-    return out
-
-
-def _inside_side(x, a, ab, R, side):
-    """The cylindrical side of :func:`inside_tool`."""
-    dz = ab[:, 2]
-    flat = np.abs(dz) < 1e-12
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s_a = np.where(flat, 0.0, (x[:, 2] - side - a[:, 2]) / dz)
-        s_b = np.where(flat, 1.0, (x[:, 2] - a[:, 2]) / dz)
-    lo = np.clip(np.minimum(s_a, s_b), 0, 1)
-    hi = np.clip(np.maximum(s_a, s_b), 0, 1)
-    level_ok = np.where(flat, (x[:, 2] >= a[:, 2]) & (x[:, 2] <= a[:, 2] + side),
-                        np.maximum(s_a, s_b) >= 0) & (np.minimum(s_a, s_b) <= 1)
-    abxy2 = np.maximum(np.einsum("ij,ij->i", ab[:, :2], ab[:, :2]), 1e-30)
-    w = np.clip(np.einsum("ij,ij->i", (x - a)[:, :2], ab[:, :2]) / abxy2, lo, hi)
-    return level_ok & (np.linalg.norm(a[:, :2] + w[:, None] * ab[:, :2] - x[:, :2], axis=1) < R - 1e-6)
-
-
 def engagement(path: Path3, stations: Stations, stock_h, radius_mm: float, stickout_mm: float,
                k_near: int = K_NEAR, max_points: int = 400_000, earlier=()) -> np.ndarray:
     """Engaged micro-edges at each station's mid point.
@@ -188,7 +142,6 @@ def engagement(path: Path3, stations: Stations, stock_h, radius_mm: float, stick
         Packed bits (``np.unpackbits(..., axis=2, count=N_PHI)``), position angles from the feed
         direction, counter-clockwise, levels of :func:`edge_grid`.
     """
-    from scipy.spatial import cKDTree
     p = path
     R = radius_mm
     zc, kappa, _ = edge_grid(radius_mm, stickout_mm)
@@ -205,21 +158,7 @@ def engagement(path: Path3, stations: Stations, stock_h, radius_mm: float, stick
     top = np.maximum(top, stock_h(mid[:, 0], mid[:, 1]))
     height = top - (mid[:, 2] - R)                                    # above the tip
     n_of = np.where(np.isfinite(height), np.searchsorted(zc, height, side="right"), 0).astype(np.int64)
-    # earlier passes as exact sub-segments of at most 2 mm, found by their plan-view midpoints;
-    # the earlier programs' passes come first, owned by pass -1 (before every pass of this one)
-    sub_owner, sub_a, sub_ab, sub_r, sub_side = [], [], [], [], []
-    for k, (path_k, r_k, stick_k) in enumerate([*earlier, (p, R, stickout_mm)]):
-        own = k == len(earlier)
-        o, a_, ab_ = _sub_segments(path_k)
-        sub_owner.append(o if own else np.full(len(o), -1))
-        sub_a.append(a_)
-        sub_ab.append(ab_)
-        sub_r.append(np.full(len(o), float(r_k)))
-        sub_side.append(np.full(len(o), float(stick_k - r_k)))     # cylinder above the centre
-    sub_owner, sub_a, sub_ab, sub_r, sub_side = map(np.concatenate, (sub_owner, sub_a, sub_ab, sub_r, sub_side))
-    tree = cKDTree((sub_a + 0.5 * sub_ab)[:, :2])
-    tree3 = cKDTree(sub_a + 0.5 * sub_ab)
-    reach = float(sub_r.max()) + 0.5 * float(np.linalg.norm(sub_ab[:, :2], axis=1).max()) + 1e-6
+    swept = SweptPasses([*earlier, (p, R, stickout_mm)])
     eng = np.zeros((S, n_lev, (N_PHI + 7) // 8), np.uint8)
     rad = np.where(kappa < np.pi / 2 - 1e-12, R * np.sin(kappa), R)
     dzc = zc - R                                                      # relative to the centre
@@ -238,38 +177,10 @@ def engagement(path: Path3, stations: Stations, stock_h, radius_mm: float, stick
             owner = np.repeat(rows, N_PHI)
             inside = pts[:, 2] < stock_h(pts[:, 0], pts[:, 1]) - 1e-9
             removed = np.zeros(len(pts), bool)
-            cand_idx = np.flatnonzero(inside)
-            if cand_idx.size and k_near:
-                # most points below the stock top were cut by a row just before: test the
-                # nearest sub-segments in space first, and only the points none of those
-                # removed against every earlier sub-segment in reach (the same answer: a
-                # removal is a removal, and any sub-segment that removes a point is in reach)
-                kn = min(k_near, len(sub_a))
-                _, near = tree3.query(pts[cand_idx], k=kn)
-                pi = np.repeat(cand_idx, kn)
-                sj = near.reshape(-1)
-                ok = sub_owner[sj] < st[owner[pi]]
-                pi, sj = pi[ok], sj[ok]
-                removed[pi[inside_tool(pts[pi], sub_a[sj], sub_ab[sj], sub_r[sj], sub_side[sj])]] = True
-                cand_idx = cand_idx[~removed[cand_idx]]
-            if cand_idx.size:
-                sdm = tree.sparse_distance_matrix(cKDTree(pts[cand_idx, :2]), reach, output_type="ndarray")
-                sj, pi = sdm["i"].astype(np.int64), cand_idx[sdm["j"]]
-                ok = sub_owner[sj] < st[owner[pi]]          # earlier passes only
-                pi, sj = pi[ok], sj[ok]
-                removed[pi[inside_tool(pts[pi], sub_a[sj], sub_ab[sj], sub_r[sj], sub_side[sj])]] = True
+            cand = np.flatnonzero(inside)
+            removed[cand] = swept.removed(pts[cand], st[owner[cand]], k_near)
             E = (inside & ~removed).reshape(-1, N_PHI)
             eng[rows, lev] = np.packbits(E, axis=1)
         s0 = s1
     return eng
 
-
-def _sub_segments(path: Path3):
-    """A path's centre segments cut into equal sub-segments of at most 2 mm: (owner pass row,
-    start, vector) of each."""
-    d = path.c1 - path.c0
-    nsub = np.maximum(1, np.ceil(path.length / 2.0).astype(np.int64))
-    owner = np.repeat(np.arange(len(d)), nsub)
-    k = np.arange(nsub.sum()) - np.repeat(np.cumsum(nsub) - nsub, nsub)
-    ab = d[owner] / nsub[owner, None]
-    return owner, path.c0[owner] + k[:, None] * ab, ab
