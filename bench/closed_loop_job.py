@@ -20,8 +20,13 @@ revolution with runout), and the figure is the RMS over the points of all angles
     python bench/closed_loop_job.py [workflows/mould.yaml] [--out runs/closed_loop] [--angles 8]
         [--spacing 0.25] [--vm-step-mm 0.5] [--workers 2]
 
-Writes ``<out>/closed_loop.json`` (figures by program and by contact-angle band, timings) and
-``<out>/points.parquet`` (every probe point: program, q, error before and after, mean over angles).
+``--set feed=null`` runs a copy of the workflow without its feed section (the coordinates-only
+correction), ``--set split.max_pass_mm=1`` … another value. Writes ``<out>/closed_loop.json``
+(figures by program and by contact-angle band, timings), ``<out>/points.parquet`` (every probe
+point: program, q, error before and after over the angles) and ``<out>/peaks.parquet`` (the
+machine's peak deflection per pass and NC line, each program and variant). The machinings are kept
+under ``<out>/vm_cache`` by content (the machine's code, the programs, the plan): a rerun machines
+only what changed.
 """
 from __future__ import annotations
 
@@ -158,6 +163,67 @@ def feeds(progs, res, run: Path, workflow) -> dict | None:
     return out
 
 
+def variant_workflow(path: Path, settings, out: Path) -> Path:
+    """A copy of the workflow under ``out`` with ``settings`` applied and its file references made
+    absolute (they are relative to the project)."""
+    import yaml
+
+    from pipeline.config import load_workflow, resolve
+    _, base = load_workflow(path)
+    wf = yaml.safe_load(path.read_text())
+
+    def absolute(v, key=""):
+        if isinstance(v, dict):
+            return {k: absolute(x, k) for k, x in v.items()}
+        if isinstance(v, list) and key == "programs":
+            return [str(resolve(base, x)) for x in v]
+        if isinstance(v, str) and key in ("programs", "stock", "nominal", "output", "profile", "table", "measurements"):
+            return str(resolve(base, v))
+        return v
+    wf = absolute(wf)
+    for kv in settings:
+        key, _, value = kv.partition("=")
+        *head, last = key.split(".")
+        d = wf
+        for h in head:
+            d = d.setdefault(h, {})
+        d[last] = yaml.safe_load(value)
+    out.mkdir(parents=True, exist_ok=True)
+    p = out / f"{path.stem}_variant.yaml"
+    p.write_text(yaml.safe_dump(wf, sort_keys=False))
+    return p
+
+
+def machine_key(progs, k, variant, step_mm, pts, nrm, angles) -> str:
+    """Content key of one machining: the machine's own code, every program text it reads (this one
+    and the earlier ones), their workflow entries, the probe plan and the options."""
+    import hashlib
+    h = hashlib.sha256()
+    for f in sorted((ROOT / "stages" / "virtual_machine").glob("*.py")) + [ROOT / "stages/geometry/paths.py"]:
+        h.update(f.read_bytes())
+    for g in progs[:k + 1]:
+        h.update(text_of(g, variant))
+        h.update(json.dumps(g["params"], sort_keys=True, default=str).encode())
+    h.update(json.dumps([k, variant, step_mm, angles]).encode())
+    h.update(np.ascontiguousarray(pts).tobytes() + np.ascontiguousarray(nrm).tobytes())
+    return h.hexdigest()[:24]
+
+
+def load_cached(cache: Path, key: str):
+    f = cache / f"{key}.npz"
+    if not f.is_file():
+        return None
+    with np.load(f) as z:
+        return z["dev"], z["peak"], z["line"], float(z["seconds"])
+
+
+def save_cached(cache: Path, key: str, res) -> None:
+    cache.mkdir(parents=True, exist_ok=True)
+    tmp = cache / f".{key}.{os.getpid()}.npz"
+    np.savez(tmp, dev=res[0], peak=res[1], line=res[2], seconds=res[3])
+    tmp.replace(cache / f"{key}.npz")                 # a killed run leaves no partial entry
+
+
 def rms(x) -> float:
     x = np.asarray(x, float)
     x = x[np.isfinite(x)]
@@ -172,7 +238,11 @@ def main(argv=None) -> int:
     ap.add_argument("--spacing", type=float, default=0.25, help="probe spacing along the passes, mm")
     ap.add_argument("--vm-step-mm", type=float, default=0.5, help="the machine's deflection step along the path")
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                    help="run a copy of the workflow with this value (YAML; `feed=null` drops the section)")
     args = ap.parse_args(argv)
+    if args.set:
+        args.workflow = str(variant_workflow(Path(args.workflow), args.set, args.out))
     from click.testing import CliRunner
 
     from pipeline.cli import main as cli
@@ -190,9 +260,15 @@ def main(argv=None) -> int:
     # a program is machined again for the corrected job when it or an earlier one was corrected
     changed = np.cumsum([g["corrected"] is not None for g in progs]) > 0
     jobs = [(k, v) for v in ("original", "corrected") for k in range(len(progs)) if v == "original" or changed[k]]
-    with ProcessPoolExecutor(max(1, min(args.workers, len(jobs)))) as pool:
-        futs = {j: pool.submit(machined, progs, j[0], j[1], args.vm_step_mm, pts, nrm, args.angles) for j in jobs}
-        res = {j: f.result() for j, f in futs.items()}
+    cache = args.out / "vm_cache"
+    keys = {j: machine_key(progs, *j, args.vm_step_mm, pts, nrm, args.angles) for j in jobs}
+    res = {j: load_cached(cache, keys[j]) for j in jobs}
+    todo = [j for j in jobs if res[j] is None]
+    with ProcessPoolExecutor(max(1, min(args.workers, len(todo) or 1))) as pool:
+        futs = {j: pool.submit(machined, progs, j[0], j[1], args.vm_step_mm, pts, nrm, args.angles) for j in todo}
+        for j, f in futs.items():
+            res[j] = f.result()
+            save_cached(cache, keys[j], res[j])
     feed_check = feeds(progs, res, run, args.workflow)
     dev = {}
     for v in ("original", "corrected"):
@@ -210,8 +286,8 @@ def main(argv=None) -> int:
         "by_band": {name: {"points": int(((q >= lo) & (q < hi)).sum()), "rms_before_um": rms(before[:, (q >= lo) & (q < hi)]),
                            "rms_after_um": rms(after[:, (q >= lo) & (q < hi)])} for lo, hi, name in Q_BANDS},
         "feed": feed_check,
-        "time_s": {"pipeline": t_pipe, "plan": t_plan, "machine": {f"{g['id']}:{v}": res[(k, v)][-1] for k, v in res
-                                                                   for g in [progs[k]]},
+        "time_s": {"pipeline": t_pipe, "plan": t_plan, "machine": {f"{progs[k]['id']}:{v}": res[(k, v)][-1]
+                                                                   for k, v in res},
                    "total": time.perf_counter() - t0},
     }
     args.out.mkdir(parents=True, exist_ok=True)
@@ -221,6 +297,8 @@ def main(argv=None) -> int:
                   "q_deg": q, "before_um": before.mean(0), "after_um": after.mean(0),
                   "before_rms_um": np.sqrt((before ** 2).mean(0)), "after_rms_um": np.sqrt((after ** 2).mean(0))}
                  ).to_parquet(args.out / "points.parquet")
+    pd.concat([pd.DataFrame({"program_id": progs[k]["id"], "variant": v, "line_no": r[2], "peak_um": r[1]})
+               for (k, v), r in res.items()]).to_parquet(args.out / "peaks.parquet")
     print(f"{len(pts)} points × {args.angles} spindle start angles: error RMS {summary['rms_before_um']:.2f} µm → "
           f"{summary['rms_after_um']:.2f} µm = {summary['ratio_pct']:.1f} % (per angle "
           f"{min(summary['by_angle_pct']):.1f}–{max(summary['by_angle_pct']):.1f} %)")
