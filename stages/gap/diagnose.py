@@ -21,7 +21,7 @@ from typing import Optional
 import numpy as np
 from scipy.stats import chi2
 
-from stages.gap.effects import beyond_limits, catalogue
+from stages.gap.effects import catalogue
 from stages.gap.observability import nonlinear_observability, restrict
 from stages.gap.collinearity import acting_rms, collinear_size, collinearity, insample_fit, insample_sse
 from stages.gap.fit import (ALPHA, blocks, bounds_of, cv_predict, fit_joint, folds, lstsq_bounded, noise_sigma, rms,
@@ -155,7 +155,7 @@ def diagnose(F: dict, noise_um: Optional[float] = None, floor_um: float = 0.0) -
         "ambiguous_with": ambiguous_with(limits, order),
         "observability": observability,
         # fits are bounded to the physical limits (``effect_bounds``); an effect whose fit sits at one
-        "at_limits": beyond_limits(F, chosen, beta) if chosen else [],
+        "at_limits": _at_limits(F, chosen, beta) if chosen else [],
         "_after": after, "_contrib": contrib, "_blocks": blk, "_fold": fold, "_chosen": chosen,
     }
 
@@ -259,6 +259,15 @@ def backward_check(F, y, fold, chosen: list, sse_base: float, base_pred: np.ndar
         sse_base += d_sse
         base_pred = pred
     return chosen, sse_base, base_pred
+
+
+def _at_limits(F, chosen: list, beta: np.ndarray) -> list[str]:
+    """The chosen effects with an amplitude at a bound of its fit (within 0.1 % of it): pressed
+    against a physical limit, a sign that the catalogue does not describe what the points show."""
+    lo, hi = bounds_of(F, chosen)
+    hit = (np.isfinite(lo) & (beta - lo <= 1e-3 * np.abs(lo)) & (lo != 0)) | (np.isfinite(hi) & (hi - beta <= 1e-3 * np.abs(hi)))
+    ks = np.cumsum([0] + [e.n_lin for e, _ in chosen])
+    return [e.name for i, (e, _) in enumerate(chosen) if hit[ks[i]:ks[i + 1]].any()]
 
 
 def _pick(rows: list) -> Optional[dict]:

@@ -140,12 +140,12 @@ _PARAMS = {
     "machine_geometry": lambda b, th: dict(zip(("sx", "sy", "sz", "exy", "exz", "eyz"), map(float, b))),
 }
 
-# Physical limits of a fitted effect: 4 × the largest the seeds measured on real machines (seed 003:
+# Physical limits of a fitted effect (the bounds of its fit, ``effect_bounds``): 4 × the largest the seeds measured on real machines (seed 003:
 # thermal drift ≈ 50 µm after 3 h of running; an X → Y error of 0–50 µm over ±20 mm, 2.5 µm/mm; a new
 # tool ≈ 10 µm off its nominal profile from holder runout). A fit beyond them is no cause but two
 # effects cancelling each other where their signatures are nearly collinear (on two raster rows: a
 # 226 µm drift against a −271 µm/mm scale error, next to the real 10 µm runout); such a combination
-# is not chosen. Sizes: the drift reached by the end of the run |A|·(1 − exp(−T/τ)) (µm), the
+# is not fitted. Sizes: the drift reached by the end of the run |A|·(1 − exp(−T/τ)) (µm), the
 # largest geometry coefficient (µm/mm), the runout e and the contour amplitude |a| (µm).
 LIMITS = {"thermal_drift": 200.0, "machine_geometry": 10.0, "runout": 40.0, "tool_contour": 40.0}
 
@@ -196,38 +196,6 @@ def effect_bounds(F, e: Effect, th) -> tuple[np.ndarray, np.ndarray]:
     if e.keep is not None:
         lo, hi = lo[list(e.keep)], hi[list(e.keep)]
     return lo, hi
-
-
-def beyond_limits(F, effects: list, beta: np.ndarray) -> list[str]:
-    """Names of the effects whose fitted size exceeds its physical limit (``LIMITS``).
-
-    Parameters
-    ----------
-    F : dict
-        Features (``t_s`` (n,) s: the run's duration bounds the drift reached).
-    effects : list of (Effect, tuple)
-        The effects and their nonlinear values.
-    beta : (p,) ndarray
-        Their linear parameters in order.
-
-    Returns
-    -------
-    list of str
-    """
-    T = max(float(np.max(F["t_s"])), 0.0) if len(F["t_s"]) else 0.0
-    out, k = [], 0
-    for e, th in effects:
-        b = e.full_beta(np.asarray(beta[k:k + e.n_lin], float))
-        k += e.n_lin
-        if e.name not in LIMITS:
-            continue
-        if e.name == "thermal_drift":
-            size = float(np.linalg.norm(b[:3])) * (1.0 - math.exp(-T / max(th[0], 1e-12)))
-        else:
-            size = float(np.abs(b).max())
-        if size > LIMITS[e.name]:
-            out.append(e.name)
-    return out
 
 
 def catalogue(F) -> list[Effect]:
