@@ -90,10 +90,10 @@ def test_bounded_least_squares_equals_the_best_active_set():
 
 
 def test_plan_counts_and_a_warning_when_the_sloped_points_are_rejected():
-    """Normals drawn at contact angles 0–60°; every point beyond 15° rejected: the counts per band
+    """Normals drawn at contact angles 0–60° (60 within 5°); every point beyond 15° rejected: the counts per band
     and direction are this file's own, and the warning names the band that lost its points."""
     seed, rng = fresh_rng()
-    q = np.radians(rng.uniform(0, 60, 400))
+    q = np.radians(np.r_[rng.uniform(0, 5, 60), rng.uniform(5, 60, 340)])
     az = rng.uniform(0, 2 * np.pi, 400)
     n = np.stack([np.sin(q) * np.cos(az), np.sin(q) * np.sin(az), np.cos(q)], 1)
     rej = np.degrees(q) > 15
