@@ -293,6 +293,7 @@ def blind_cases(vm, passes: pa.Table, errors: Optional[pa.Table], tool, pts: np.
                 "rms_after_terms_um": res.get("rms_after_terms_um"), "how_added": res.get("how_added"),
                 "shrink_where_acting": res["shrink_where_acting"],
                 "n_rejected": len(rej)}
+        case["not_observable"] = {e: [k for k, w in d.items() if w] for e, d in res.get("observability", {}).items()}
         top = res["effect"]
         case["top1_ok"] = (top == (by_size[0] if by_size else "none"))
         case["ambiguous_with"] = res.get("ambiguous_with", {})
