@@ -50,6 +50,10 @@ def test_scheduled_feeds_keep_the_repredicted_deflection_at_the_limit(tmp_path):
     np.testing.assert_allclose(peak[lim.index], LIMIT_UM, rtol=1e-6)          # at the limit, not below it
     np.testing.assert_allclose(peak[lim.index], lim.peak_deflection_new_um, rtol=1e-9)
     assert (lim.feed_new_mm_min < lim.feed_mm_min).all()
+    # every pass the program as written overloads is a warning with its NC line
+    w = pd.read_parquet(out / "tables" / "warnings").query("reason == 'overloaded_as_programmed'").set_index("pass_id")
+    over = f[(f.peak_deflection_um > LIMIT_UM) & ~f.overloaded]
+    assert set(w.index) == set(over.index) and (w.line_no == over.line_no.reindex(w.index)).all()
     # the corrected program carries the feeds: each cutting block at the slowest of its passes
     from stages.nc.reader import parse_program
     text = (out / "nc" / "cyl.nc").read_bytes()
@@ -72,8 +76,9 @@ def test_limits_are_kept_and_an_overload_at_the_minimum_feed_is_flagged(tmp_path
     f = pd.read_parquet(out / "tables" / "feeds").sort_values("pass_id")
     pred = f.peak_deflection_um.notna()
     assert pred.sum() >= 3 and f.overloaded[pred].all() and np.allclose(f.feed_new_mm_min[pred], 300)
-    w = pd.read_parquet(out / "tables" / "warnings").query("reason == 'overloaded'")
-    assert set(w.pass_id) == set(f.pass_id[pred]) and np.allclose(w.limit, 1e-3), w
+    w = pd.read_parquet(out / "tables" / "warnings")
+    assert set(w.query("reason == 'overloaded'").pass_id) == set(f.pass_id[pred]) and np.allclose(w.limit, 1e-3), w
+    assert not (w.reason == "overloaded_as_programmed").any()      # none is brought within the limit
     moving = f[f.limited_by != "rapid"]
     assert moving.feed_new_mm_min.between(300 * (1 - 1e-12), 6000).all()
     ratio = moving.feed_new_mm_min.to_numpy()
