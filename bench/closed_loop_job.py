@@ -22,9 +22,10 @@ revolution with runout), and the figure is the RMS over the points of all angles
 
 ``--set feed=null`` runs a copy of the workflow without its feed section (the coordinates-only
 correction), ``--set split.max_pass_mm=1`` … another value. Writes ``<out>/closed_loop.json``
-(figures by program and by contact-angle band, timings), ``<out>/points.parquet`` (every probe
-point: program, q, error before and after over the angles) and ``<out>/peaks.parquet`` (the
-machine's peak deflection per pass and NC line, each program and variant). The machinings are kept
+(figures by program and by contact-angle band, timings), ``<out>/closed_loop_points.parquet``
+(every probe point: program, q, error before and after over the angles) and
+``<out>/closed_loop_peaks.parquet`` (the machine's peak deflection per pass and NC line, each
+program and variant); a ``--set`` run names them after its settings, its pipeline run too. The machinings are kept
 under ``<out>/vm_cache`` by content (the machine's code, the programs, the plan): a rerun machines
 only what changed.
 """
@@ -247,7 +248,9 @@ def main(argv=None) -> int:
 
     from pipeline.cli import main as cli
     t0 = time.perf_counter()
-    run = args.out / "run"
+    # each variant of the workflow predicts into a run directory of its own (the machinings are
+    # shared through the content-keyed cache)
+    run = args.out / ("run" if not args.set else "run-" + "-".join(k.replace("=", "_") for k in args.set))
     r = CliRunner().invoke(cli, ["run", args.workflow, "--out", str(run), "--workers", str(args.workers), "-q"])
     t_pipe = time.perf_counter() - t0
     if r.exit_code != 0:
@@ -291,14 +294,15 @@ def main(argv=None) -> int:
                    "total": time.perf_counter() - t0},
     }
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "closed_loop.json").write_text(json.dumps(summary, indent=1))
+    tag = run.name.replace("run", "closed_loop", 1)
+    (args.out / f"{tag}.json").write_text(json.dumps(summary, indent=1))
     import pandas as pd
     pd.DataFrame({"program_id": [progs[k]["id"] for k in owner], "x_mm": pts[:, 0], "y_mm": pts[:, 1], "z_mm": pts[:, 2],
                   "q_deg": q, "before_um": before.mean(0), "after_um": after.mean(0),
                   "before_rms_um": np.sqrt((before ** 2).mean(0)), "after_rms_um": np.sqrt((after ** 2).mean(0))}
-                 ).to_parquet(args.out / "points.parquet")
+                 ).to_parquet(args.out / f"{tag}_points.parquet")
     pd.concat([pd.DataFrame({"program_id": progs[k]["id"], "variant": v, "line_no": r[2], "peak_um": r[1]})
-               for (k, v), r in res.items()]).to_parquet(args.out / "peaks.parquet")
+               for (k, v), r in res.items()]).to_parquet(args.out / f"{tag}_peaks.parquet")
     print(f"{len(pts)} points × {args.angles} spindle start angles: error RMS {summary['rms_before_um']:.2f} µm → "
           f"{summary['rms_after_um']:.2f} µm = {summary['ratio_pct']:.1f} % (per angle "
           f"{min(summary['by_angle_pct']):.1f}–{max(summary['by_angle_pct']):.1f} %)")
