@@ -11,6 +11,10 @@ import numpy as np
 from stages.gap.cases import geometry_offsets
 
 
+# amplitudes of the effects scored as a vector or field (``param_error``)
+_VECTOR_AMPLITUDES = ("ax_um", "ay_um", "az_um", "sx", "sy", "sz", "exy", "exz", "eyz")
+
+
 def param_error(kind: str, true: dict, fit: dict, geom=None, *, flutes: int, not_observable=()) -> float:
     """Relative error of the fitted parameters (vector norm for multi-parameter effects).
 
@@ -33,9 +37,10 @@ def param_error(kind: str, true: dict, fit: dict, geom=None, *, flutes: int, not
     float
         Relative error (0.2 = 20 %).
     """
-    if not_observable:
-        true = {k: (0.0 if k in not_observable else v) for k, v in true.items()}
-        fit = {k: (0.0 if k in not_observable else v) for k, v in fit.items()}
+    held = [k for k in not_observable if k in _VECTOR_AMPLITUDES]   # a nonlinear value is scored as it is
+    if held:
+        true = {k: (0.0 if k in held else v) for k, v in true.items()}
+        fit = {k: (0.0 if k in held else v) for k, v in fit.items()}
     if kind == "runout":
         return abs(fit["e_um"] - runout_effective(true, flutes)) / runout_effective(true, flutes)
     if kind == "force_scale":
