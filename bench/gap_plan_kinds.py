@@ -29,7 +29,8 @@ def figures(s: dict, qmin: float, qmax: float) -> dict:
     contour = [c for c in cases if "tool_contour" in c["found"]]
     outside = [c for c in contour if not qmin - 1e-6 <= c["params"]["tool_contour"]["q0_deg"] <= qmax + 1e-6]
     none = [c for c in cases if not c["truth"]]
-    singles = [c for c in cases if len(c["truth"]) == 1]
+    cases = [c for c in cases if "outside_ok" not in c]
+    singles = [c for c in cases if len(c["truth"]) == 1 and "outside_ok" not in c]
     extra = [c for c in singles if len(c["found"]) > 1]
     return {"plan_kind": s.get("plan_kind"), "cases": len(cases), "q_range_deg": [qmin, qmax],
             "drift_z_over_3sigma": len(drift), "drift_named_first": len(named), "drift_xy_not_observable": len(no_xy),
@@ -38,7 +39,8 @@ def figures(s: dict, qmin: float, qmax: float) -> dict:
             "none_cases": len(none), "none_claimed": sum(1 for c in none if c["found"]),
             "single_cases": len(singles), "single_with_extra": len(extra),
             "top1_accuracy": s["top1_accuracy"], "median_shrink": s["median_shrink"],
-            "param_error": s["param_error"], "pair_order_ok": s.get("pair_order_ok")}
+            "param_error": s["param_error"], "pair_order_ok": s.get("pair_order_ok"),
+            "unexplained": s.get("unexplained"), "possible": s.get("possible")}
 
 
 def main():

@@ -244,7 +244,8 @@ def diagnose(workflow, measurements, out, reference):
 @click.option("--cases", type=click.IntRange(1), default=56, show_default=True)
 @click.option("--pairs", type=click.IntRange(0), default=0, show_default=True, help="Extra cases with two effects.")
 @click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--kinds", help="Comma-separated effects (and 'none') the single cases cycle through (default: all).")
+@click.option("--kinds", help="Comma-separated effects (and 'none') the single cases cycle through (default: all); "
+              "'periodic' and 'bump' are errors outside the catalogue (the answer should be 'unexplained').")
 @click.option("--plan-kind", type=click.Choice(["full", "floors", "sections", "walls"]), default="full", show_default=True,
               help="The plan's points an inspection program of that kind probes (floors: normal within 5° of +z).")
 @click.option("--out", "out", type=click.Path(file_okay=False))

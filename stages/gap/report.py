@@ -165,8 +165,10 @@ def report(gdir: Path, F: dict, res: dict, summary: dict) -> None:
     possible = summary.get("possible", [])
     unexpl = summary.get("unexplained")
     answer = (", ".join(f"<b>{esc(e)}</b>" for e in summary["effects"]) or "<b>none</b>")
-    if unexpl:
+    if unexpl and summary["effect"] == "unexplained":
         answer = f"<b>unexplained</b> ({esc(unexpl.get('description', ''))})"
+    elif unexpl:                 # structure left beside effects that explain most of the gap
+        answer += f"; structure left beyond them: {esc(unexpl.get('description', ''))}"
     at_lim = summary.get("at_limits", [])
     se_info = summary.get("params_se_info", {})
     html = f"""<html><head><meta charset="utf-8"><title>Gap diagnosis</title>

@@ -66,7 +66,7 @@ def gap_effects_table(res: dict) -> pa.Table:
         "rank": pa.array([r["rank"] for r in rows], pa.int32()),
         "gain_sigma2": [r["gain_sigma2"] for r in rows],
         "threshold_sigma2": [r["threshold_sigma2"] for r in rows],
-        "chosen": [r["effect"] in chosen for r in rows],
+        "chosen": [r["effect"] in res.get("effects", chosen) for r in rows],
         "hidden_up_to_um": [float(res.get("detection_limits", {}).get(r["effect"], {}).get("hidden_up_to_um", np.nan))
                             for r in rows],
         "ambiguous_with": pa.array([json.dumps(res.get("ambiguous_with", {}).get(r["effect"], [])) for r in rows],
