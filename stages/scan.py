@@ -31,11 +31,18 @@ from stages.surface.strip import GEN_COLUMNS
 from stages.tables import task_count
 
 NAME = "scan"
-VERSION = "2"
+VERSION = "3"
 INPUTS = ("passes", "passes@earlier", "stock", "nominal")
 OUTPUTS = ("cut_filter", "angle_prune", "generating", "engagement")
-PARAMS = ("tool", "render", "prune")
+PARAMS = ("tool", "render", "prune", "feed")
 MOST_TASKS = 16          # a program's tiles are dealt to at most this many tasks
+
+
+def used_params(params: dict) -> dict:
+    """Of the ``feed:`` section only whether there is one: scheduled feeds need the deflection of
+    every cutting pass, so then every cutting pass is predicted (``prune.min_contact_deg`` decides
+    which passes' surface errors matter, not which passes load the tool)."""
+    return {**params, "feed": bool(params.get("feed"))}
 
 
 def shards(rows: dict, params: dict) -> int:
@@ -49,9 +56,10 @@ def run(inputs: dict, params: dict, shard: tuple[int, int] | None = None) -> dic
     rp = params.get("render") or {}
     i, n = shard or (0, 1)
     earlier = [(pass_geometry(t, p["tool"]), Cutter.from_params(p["tool"])) for t, p in inputs.get("passes@earlier") or ()]
+    min_q = -np.inf if params.get("feed") else float((params.get("prune") or {}).get("min_contact_deg", 45.0))
     res = scan_program(pg, Cutter.from_params(params["tool"]), load_workpiece(inputs.get("stock")),
                        make_renderer(rp.get("backend", "auto")), float(rp.get("px_per_mm", 20.0)),
-                       float((params.get("prune") or {}).get("min_contact_deg", 45.0)),
+                       min_q,
                        design=load_design_surface(inputs.get("nominal")), strips=n, strip=i, earlier=earlier)
     return tables(pg, res)
 

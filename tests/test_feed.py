@@ -244,3 +244,30 @@ def test_a_program_without_a_kept_correction_still_gets_its_scheduled_feeds(tmp_
     # without feeds nothing is written
     assert corrected_programs({"program_file": {"path": str(src), "sha256": "ab", "program_id": "cyl"},
                                "corrected": None, **dict(t, feeds=t["feeds"].slice(0, 0))}, {"correct": {}}) == {}
+
+
+def test_with_scheduled_feeds_every_cutting_pass_is_predicted(tmp_path):
+    # the passes claim 8 leaves out (their surface's contact angle under prune.min_contact_deg) load
+    # the tool all the same: with a feed section each cutting pass gets its deflection and feed
+    feed = {"max_deflection_um": LIMIT_UM, "max_chip_mm": 0.5, "max_mm_min": 20000, "min_mm_min": 10, "max_change": 10.0}
+    predicted = {}
+    for name, fd in (("without", None), ("with", feed)):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "nc").mkdir()
+        (tmp_path / name / "nc" / "cyl.nc").write_bytes(_program())
+        stock = trimesh.creation.cylinder(radius=RC + DEPTH, height=4.0, sections=720)
+        stock.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
+        stock.export(tmp_path / name / "stock.stl")
+        path = _workflow(tmp_path / name, max_iter=1, until="feed")
+        wf = yaml.safe_load(path.read_text())
+        wf["prune"] = {"min_contact_deg": 89.9}
+        wf["feed"] = fd
+        path.write_text(yaml.safe_dump(wf))
+        _run(path)
+        t = tmp_path / name / "out" / "tables"
+        cf = pd.read_parquet(t / "cut_filter")
+        predicted[name] = set(pd.read_parquet(t / "angle_prune").query("predict").pass_id)
+        cutting = set(cf.pass_id[cf.is_cutting])
+    assert predicted["without"] < cutting and predicted["with"] == cutting      # every level is under 89.9°
+    f = pd.read_parquet(tmp_path / "with" / "out" / "tables" / "feeds")
+    assert f.set_index("pass_id").peak_deflection_um[sorted(cutting)].notna().all()
