@@ -42,7 +42,7 @@ def main():
     from pipeline.gap_jobs import (make_predictor, measurement_spec, program_tool, read_points, run_tables,
                                    workflow_stock)
     from stages.gap.associate import associate
-    from stages.gap.blind import coefficient_error, param_error
+    from stages.gap.scoring import coefficient_error, param_error
     from stages.gap.calibration import apply_baseline, calibrate
     from stages.gap.measurements import measurement_table, points_and_normals
     from stages.gap.predictor import diagnose_points

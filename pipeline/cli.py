@@ -228,6 +228,15 @@ def diagnose(workflow, measurements, out, reference):
     click.echo(f"effect: {s['effect']} (all: {s['effects']}); params {json.dumps(s['params'])}")
     click.echo(f"held-out RMS {s['rms_before_um']:.3f} -> {s['rms_after_um']:.3f} um (shrink {s['shrink']:.1%}); "
                f"{len(s['where'])} regions beyond noise; {s['n_points']} points, {s['n_rejected']} rejected")
+    pl = s["plan"]
+    click.echo("points by contact angle: " + ", ".join(
+        f"{b['band_deg'][0]:g}-{b['band_deg'][1]:g}° {b['measured']} (+{b['rejected']} rejected)" for b in pl["bands"])
+        + "; by normal: " + ", ".join(f"{d['direction']} {d['measured']} (+{d['rejected']} rejected)" for d in pl["directions"]))
+    for w in pl["warnings"]:
+        click.echo(f"warning: {w}")
+    hidden = [f"{e}.{k}" for e, d in s.get("observability", {}).items() for k, why in d.items() if why]
+    if hidden:
+        click.echo("not observable from these points (held at nominal): " + ", ".join(hidden))
 
 
 @main.command("blind-check")
@@ -235,13 +244,16 @@ def diagnose(workflow, measurements, out, reference):
 @click.option("--cases", type=click.IntRange(1), default=56, show_default=True)
 @click.option("--pairs", type=click.IntRange(0), default=0, show_default=True, help="Extra cases with two effects.")
 @click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--kinds", help="Comma-separated effects (and 'none') the single cases cycle through (default: all).")
+@click.option("--kinds", help="Comma-separated effects (and 'none') the single cases cycle through (default: all); "
+              "'periodic' and 'bump' are errors outside the catalogue (the answer should be 'unexplained').")
+@click.option("--plan-kind", type=click.Choice(["full", "floors", "sections", "walls"]), default="full", show_default=True,
+              help="The plan's points an inspection program of that kind probes (floors: normal within 5° of +z).")
 @click.option("--out", "out", type=click.Path(file_okay=False))
-def blind_check(workflow, cases, pairs, seed, kinds, out):
+def blind_check(workflow, cases, pairs, seed, kinds, plan_kind, out):
     """Random effect (or none) per case on the virtual machine, diagnosed without telling it."""
     from pipeline.gap_jobs import blind_check as bc
     try:
-        s = bc(workflow, cases, seed, out, pairs=pairs, kinds=kinds.split(",") if kinds else None,
+        s = bc(workflow, cases, seed, out, pairs=pairs, kinds=kinds.split(",") if kinds else None, plan_kind=plan_kind,
                progress=lambda i, c: click.echo(f"case {i}: truth {list(c['truth']) or ['none']} found {c['found'] or ['none']} "
                                                 f"shrink {c['shrink']:.2f}"
                                                 + (f" (missed within its stated limit: {[m['effect'] for m in c['missed']]})"
@@ -249,7 +261,7 @@ def blind_check(workflow, cases, pairs, seed, kinds, out):
     except (WorkflowError, InputError) as e:
         click.echo(f"error: {e}", err=True)
         sys.exit(2)
-    click.echo(json.dumps({k: s[k] for k in ("cases", "pairs", "top1_accuracy", "none_correct", "median_shrink",
+    click.echo(json.dumps({k: s[k] for k in ("plan_kind", "points_per_case", "cases", "pairs", "top1_accuracy", "none_correct", "median_shrink",
                                              "param_error", "pair_order_ok", "misses_within_stated_limit", "wall_s")},
                           indent=2))
 

@@ -134,9 +134,11 @@ class Run:
         used = getattr(stage.load(), "used_params", None)   # values a stage uses only under a switch
         return used(params) if used is not None else params
 
-    def _input(self, name: str, part: Partition, rnd: int):
+    def _input(self, name: str, part: Partition, rnd: int, stage: Stage):
         """(fingerprint for the key, spec for the task) of one declared input."""
-        base = name.partition("@")[0]
+        base, _, qual = name.partition("@")
+        if qual == "earlier":
+            return self._earlier(base, part, stage)
         if self.graph.sources.get(base) == "partition":
             return ([part.program_id, part.sha256],
                     ("value", {"path": part.path, "sha256": part.sha256, "program_id": part.program_id,
@@ -151,12 +153,25 @@ class Run:
             raise KeyError(f"input {name!r}: no stage before it writes {base!r}")
         return loc[1], ("table", str(self.cache.table_path(loc[0], loc[1], base)))
 
+    def _earlier(self, base: str, part: Partition, stage: Stage):
+        """Table ``base`` of every partition before ``part``, with the stage's parameters for each."""
+        fps, specs = [], []
+        for other in self.parts[:self.parts.index(part)]:
+            loc = other.tables[1].get(base)
+            if loc is None:
+                raise WorkflowError(f"machined after {other.program_id}, which failed ({other.failed or 'no ' + base}): "
+                                    "the stock this program meets is unknown")
+            params = self.params_for(stage, other)
+            fps.append([other.program_id, loc[1], digest(params)])
+            specs.append((str(self.cache.table_path(loc[0], loc[1], base)), params))
+        return fps, ("tables", specs)
+
     def plan(self, stage: Stage, part: Partition, rnd: int):
         """Cache key, parameters and input specs of ``stage`` on ``part`` in round ``rnd``."""
         params = self.params_for(stage, part)
         fps, specs = {}, {}
         for name in stage.inputs:
-            fps[name], specs[name] = self._input(name, part, rnd)
+            fps[name], specs[name] = self._input(name, part, rnd, stage)
         files = {}
         _collect_file_hashes(params, files)
         spec = {"stage": stage.name, "version": stage.version, "params": params, "files": files, "inputs": fps}
@@ -191,7 +206,7 @@ class Run:
             try:
                 key, params, specs = self.plan(stage, part, rnd)
             except WorkflowError as e:
-                self._fail(part, f"{part.path}: {e}", rep.name, failures)
+                self._fail(part, f"{self.display_path(part.path)}: {e}", rep.name, failures)
                 rep.failed += 1
                 continue
             rep.partitions += 1

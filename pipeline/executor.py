@@ -38,14 +38,13 @@ WORKER_ENV = {"OMP_NUM_THREADS": 1, "MKL_NUM_THREADS": 1, "OPENBLAS_NUM_THREADS"
 def execute_partition(stage_module: str, cache_root: str, key: str, inputs: dict, params: dict,
                       shard: Optional[tuple] = None) -> dict:
     """Run one stage on one partition, or one shard of it (on a Dask worker)."""
-    import pyarrow.parquet as pq
     t0 = time.perf_counter()
     stage = importlib.import_module(stage_module)
     cache = Cache(cache_root)
     if cache.has(stage.NAME, key):  # a concurrent run (or a retried task) already made it
         return {"ok": True, "elapsed_s": 0.0}
     try:
-        loaded = {n: (pq.read_table(v) if kind == "table" else v) for n, (kind, v) in inputs.items()}
+        loaded = {n: _load(kind, v) for n, (kind, v) in inputs.items()}
         result = stage.run(loaded, params) if shard is None else stage.run(loaded, params, shard=tuple(shard))
         missing = set(stage.OUTPUTS) - set(result)
         if missing:
@@ -57,6 +56,16 @@ def execute_partition(stage_module: str, cache_root: str, key: str, inputs: dict
     except Exception as e:  # a bug or an unexpected input: this partition fails, the run goes on
         return {"ok": False, "message": f"{stage.NAME}: {type(e).__name__}: {e}",
                 "traceback": traceback.format_exc(), "elapsed_s": time.perf_counter() - t0}
+
+
+def _load(kind: str, v):
+    """A task's input from its spec: a table path, a list of (table path, parameters), or a value."""
+    import pyarrow.parquet as pq
+    if kind == "table":
+        return pq.read_table(v)
+    if kind == "tables":
+        return [(pq.read_table(path), params) for path, params in v]
+    return v
 
 
 def shard_key(key: str, i: int, n: int) -> str:

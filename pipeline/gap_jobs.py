@@ -22,6 +22,7 @@ from stages.gap.associate import associate
 from stages.gap.blind import blind_cases, check_kinds
 from stages.gap.calibration import apply_baseline, calibrate
 from stages.gap.measurements import points_and_normals, read_measurements, write_measurements
+from stages.gap.plans import plan_counts, plan_mask
 from stages.gap.predictor import HOW_ADDED, Predictor, diagnose_points
 from stages.gap.probe import probe_program
 from stages.gap.report import public_summary, report
@@ -162,6 +163,7 @@ def diagnose_cmd(workflow: str, measurements: str, out: Optional[str] = None,
     (gdir / "rejected.csv").write_text("point_id,line,reason\n" + "".join(
         f"{i},{'' if ln is None else ln},\"{why}\"\n" for i, ln, why in rejected))
     summary = public_summary(res)
+    summary["plan"] = plan_diagnostics(meas, F, rej2, len(rej))
     summary.update({"measurements": str(measurements), "n_rejected": len(rejected),
                     "timing_s": {"associate": t1 - t0, "diagnose": t2 - t1}})
     (gdir / "summary.json").write_text(json.dumps(summary, indent=2))
@@ -169,9 +171,24 @@ def diagnose_cmd(workflow: str, measurements: str, out: Optional[str] = None,
     return summary
 
 
+def plan_diagnostics(meas: pa.Table, F: dict, rejected: list, unreadable: int) -> dict:
+    """Measured and rejected points per contact-angle band and normal direction
+    (``stages.gap.plans.plan_counts``); rows rejected while reading have no trusted normal and are
+    counted apart (``unreadable``)."""
+    ids = meas.column("point_id").to_numpy()
+    nrm = np.stack([meas.column(c).to_numpy() for c in ("nx", "ny", "nz")], 1)
+    rid = np.array([i for i, _ in rejected], dtype=ids.dtype)
+    pos = {int(v): k for k, v in enumerate(ids)}
+    nr = nrm[[pos[int(i)] for i in rid if int(i) in pos]] if len(rid) else np.zeros((0, 3))
+    out = plan_counts(np.stack([F["nx"], F["ny"], F["nz"]], 1), nr, [why.split(":")[0] for _, why in rejected])
+    out["unreadable"] = int(unreadable)
+    return out
+
+
 def blind_check(workflow: str, cases: int, seed: int, out: Optional[str] = None, noise=(0.3, 1.0),
-                pairs: int = 0, progress=None, kinds: Optional[list] = None) -> dict:
-    """Random effect (or none) per case, simulated on the virtual machine, diagnosed blind."""
+                pairs: int = 0, progress=None, kinds: Optional[list] = None, plan_kind: str = "full") -> dict:
+    """Random effect (or none) per case, simulated on the virtual machine, diagnosed blind, on the
+    points of the plan a ``plan_kind`` inspection program probes (``stages.gap.plans.plan_mask``)."""
     wf, base = load_workflow(workflow)
     spec = measurement_spec(wf, base)
     tabs, outdir = run_tables(workflow, "errors")
@@ -185,6 +202,8 @@ def blind_check(workflow: str, cases: int, seed: int, out: Optional[str] = None,
         pts, nrm = points_and_normals(read_points(spec.file, spec, require_deviation=False)[0])
     else:
         pts, nrm = grid_plan(vm)
+    keep = plan_mask(pts, nrm, plan_kind)
+    pts, nrm = pts[keep], nrm[keep]
     sub_tabs = {k: (v.filter(pa.compute.equal(v.column("program_id"), prog)) if "program_id" in v.column_names else v)
                 for k, v in tabs.items()}
     predictor = make_predictor(sub_tabs, wf, tool, workdir=outdir / "blind" / "profiles")
@@ -192,6 +211,7 @@ def blind_check(workflow: str, cases: int, seed: int, out: Optional[str] = None,
                           off_part_mm=spec.off_part_mm, progress=progress, deflection=tabs.get("deflection"),
                           kinds=check_kinds(kinds), predictor=predictor)
     summary["workflow"] = workflow
+    summary["plan_kind"] = plan_kind
     bdir = outdir / "blind"
     bdir.mkdir(parents=True, exist_ok=True)
     (bdir / "summary.json").write_text(json.dumps(summary, indent=2, default=lambda o: o.tolist() if isinstance(

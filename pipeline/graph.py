@@ -8,7 +8,11 @@ Inputs are resolved by name: a source (``SOURCES``: the program file of the part
 workflow file such as the stock), else the table of the nearest earlier stage that outputs it.
 In a repeated sub-chain (``Repeat``) a plain name means this round's table when a stage earlier
 in the round wrote it, else the first round's; ``name@first`` is always the first round's and
-``name@previous`` the previous round's (absent in the first round).
+``name@previous`` the previous round's (absent in the first round). ``name@earlier`` is the list of
+that table of every earlier partition of the job, in machining order (the workflow's program order),
+each with the stage's parameters for it: ``[(table, params), ...]`` — the programs are machined on
+one stock, and a partition whose input names them is recomputed when an earlier one changes. It is
+always the first round's (the programs as written).
 """
 from __future__ import annotations
 

@@ -7,7 +7,12 @@ the surface (centre = p + R·n, tip = centre − R·z). The stock is the same su
 (a height-field STL, closed down to Z-10). ``plan.csv`` is a CMM measurement plan: the contact
 points of the ball at 0.3, 0.5, 0.7 of every cutting chord, with their normals.
 
-    python scripts/make_gap_samples.py        # writes data_samples/gap/
+``--part floors`` writes ``data_samples/gap_floors/`` (``workflows/gap_floors.yaml``): the same
+raster over X0–10, Y0–5 of a part that is mostly floor, a lower floor Z-2.5 (X < 3) and an upper
+one Z-1.9 (X > 7) joined by a cosine ramp (slope ≤ 13°, concave radius ≥ 5.4 mm > the ball's 3 mm):
+the plan's normals are within 5° of +z on ~70 % of its points, and have no Y part anywhere.
+
+    python scripts/make_gap_samples.py [--part floors]      # writes data_samples/gap/ (gap_floors/)
 """
 from __future__ import annotations
 
@@ -16,17 +21,31 @@ from pathlib import Path
 import numpy as np
 
 R = 3.0
+PART = "gap"
 OUT = Path(__file__).resolve().parent.parent / "data_samples" / "gap"
 X0, X1, Y0, Y1, DX, STEP = 0.0, 8.0, 0.0, 6.0, 0.4, 0.4
 
 
+RAMP = (3.0, 7.0, 0.6)          # the floors part: ramp from X3 to X7, 0.6 mm high
+
+
 def surface(x, y):
+    if PART == "floors":
+        x0, x1, h = RAMP
+        u = np.clip((x - x0) / (x1 - x0), 0.0, 1.0)
+        return -2.5 + h * 0.5 * (1.0 - np.cos(np.pi * u)) + 0.0 * y
     return 2.4 * np.sin(x / 2.0) * np.cos(y / 3.0) - 2.5
 
 
 def normal(x, y):
-    fx = 2.4 / 2.0 * np.cos(x / 2.0) * np.cos(y / 3.0)
-    fy = -2.4 / 3.0 * np.sin(x / 2.0) * np.sin(y / 3.0)
+    if PART == "floors":
+        x0, x1, h = RAMP
+        u = (x - x0) / (x1 - x0)
+        fx = np.where((u > 0) & (u < 1), h * 0.5 * np.pi / (x1 - x0) * np.sin(np.pi * np.clip(u, 0, 1)), 0.0)
+        fy = np.zeros_like(fx)
+    else:
+        fx = 2.4 / 2.0 * np.cos(x / 2.0) * np.cos(y / 3.0)
+        fy = -2.4 / 3.0 * np.sin(x / 2.0) * np.sin(y / 3.0)
     n = np.stack([-fx, -fy, np.ones_like(fx)], axis=-1)
     return n / np.linalg.norm(n, axis=-1, keepdims=True)
 
@@ -43,7 +62,8 @@ def contact_points():
 
 
 def program_text(rows) -> str:
-    lines = ["%", "O3001 (GAP SAMPLE RASTER D6 BALL)", "G90 G17 G21", "T1 M6", "S8000 M3"]
+    title = "O3002 (GAP FLOORS RASTER D6 BALL)" if PART == "floors" else "O3001 (GAP SAMPLE RASTER D6 BALL)"
+    lines = ["%", title, "G90 G17 G21", "T1 M6", "S8000 M3"]
     pts = []
     for k, row in enumerate(rows):
         n = normal(row[:, 0], row[:, 1])
@@ -122,6 +142,13 @@ def stock_stl(path: Path, allowance: float = 0.15, h: float = 0.2) -> None:
 
 
 def main():
+    global PART, OUT, X1, Y1
+    import argparse
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--part", choices=("gap", "floors"), default="gap")
+    PART = ap.parse_args().part
+    if PART == "floors":
+        OUT, X1, Y1 = OUT.parent / "gap_floors", 10.0, 5.0
     OUT.mkdir(parents=True, exist_ok=True)
     rows = contact_points()
     (OUT / "gap_t1.nc").write_text(program_text(rows))

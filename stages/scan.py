@@ -8,6 +8,9 @@ predicted pass, at its prediction point: the generating point with φ and q from
 between the other sweeps (claims 1, 4, 6: :mod:`stages.surface.strip`) and the cutting region
 from the depths its cuts replaced (claim 5: :mod:`stages.surface.engagement`).
 
+The program meets the stock less what the earlier programs of its job cut (``passes@earlier``: their
+passes and tools, in machining order; :mod:`stages.surface.chain`).
+
 A large program is scanned in several tasks (``shards``); a pass belongs to one tile, and the
 tiles' rows are joined in pass order. Decode an ``engagement`` row with
 :func:`stages.surface.engagement.unpack_engagement`.
@@ -28,11 +31,18 @@ from stages.surface.strip import GEN_COLUMNS
 from stages.tables import task_count
 
 NAME = "scan"
-VERSION = "1"
-INPUTS = ("passes", "stock", "nominal")
+VERSION = "3"
+INPUTS = ("passes", "passes@earlier", "stock", "nominal")
 OUTPUTS = ("cut_filter", "angle_prune", "generating", "engagement")
-PARAMS = ("tool", "render", "prune")
+PARAMS = ("tool", "render", "prune", "feed")
 MOST_TASKS = 16          # a program's tiles are dealt to at most this many tasks
+
+
+def used_params(params: dict) -> dict:
+    """Of the ``feed:`` section only whether there is one: scheduled feeds need the deflection of
+    every cutting pass, so then every cutting pass is predicted (``prune.min_contact_deg`` decides
+    which passes' surface errors matter, not which passes load the tool)."""
+    return {**params, "feed": bool(params.get("feed"))}
 
 
 def shards(rows: dict, params: dict) -> int:
@@ -45,10 +55,12 @@ def run(inputs: dict, params: dict, shard: tuple[int, int] | None = None) -> dic
     pg = pass_geometry(inputs["passes"], params["tool"])
     rp = params.get("render") or {}
     i, n = shard or (0, 1)
+    earlier = [(pass_geometry(t, p["tool"]), Cutter.from_params(p["tool"])) for t, p in inputs.get("passes@earlier") or ()]
+    min_q = -np.inf if params.get("feed") else float((params.get("prune") or {}).get("min_contact_deg", 45.0))
     res = scan_program(pg, Cutter.from_params(params["tool"]), load_workpiece(inputs.get("stock")),
                        make_renderer(rp.get("backend", "auto")), float(rp.get("px_per_mm", 20.0)),
-                       float((params.get("prune") or {}).get("min_contact_deg", 45.0)),
-                       design=load_design_surface(inputs.get("nominal")), strips=n, strip=i)
+                       min_q,
+                       design=load_design_surface(inputs.get("nominal")), strips=n, strip=i, earlier=earlier)
     return tables(pg, res)
 
 

@@ -50,6 +50,10 @@ def test_scheduled_feeds_keep_the_repredicted_deflection_at_the_limit(tmp_path):
     np.testing.assert_allclose(peak[lim.index], LIMIT_UM, rtol=1e-6)          # at the limit, not below it
     np.testing.assert_allclose(peak[lim.index], lim.peak_deflection_new_um, rtol=1e-9)
     assert (lim.feed_new_mm_min < lim.feed_mm_min).all()
+    # every pass the program as written overloads is a warning with its NC line
+    w = pd.read_parquet(out / "tables" / "warnings").query("reason == 'overloaded_as_programmed'").set_index("pass_id")
+    over = f[(f.peak_deflection_um > LIMIT_UM) & ~f.overloaded]
+    assert set(w.index) == set(over.index) and (w.line_no == over.line_no.reindex(w.index)).all()
     # the corrected program carries the feeds: each cutting block at the slowest of its passes
     from stages.nc.reader import parse_program
     text = (out / "nc" / "cyl.nc").read_bytes()
@@ -72,6 +76,9 @@ def test_limits_are_kept_and_an_overload_at_the_minimum_feed_is_flagged(tmp_path
     f = pd.read_parquet(out / "tables" / "feeds").sort_values("pass_id")
     pred = f.peak_deflection_um.notna()
     assert pred.sum() >= 3 and f.overloaded[pred].all() and np.allclose(f.feed_new_mm_min[pred], 300)
+    w = pd.read_parquet(out / "tables" / "warnings")
+    assert set(w.query("reason == 'overloaded'").pass_id) == set(f.pass_id[pred]) and np.allclose(w.limit, 1e-3), w
+    assert not (w.reason == "overloaded_as_programmed").any()      # none is brought within the limit
     moving = f[f.limited_by != "rapid"]
     assert moving.feed_new_mm_min.between(300 * (1 - 1e-12), 6000).all()
     ratio = moving.feed_new_mm_min.to_numpy()
@@ -237,3 +244,30 @@ def test_a_program_without_a_kept_correction_still_gets_its_scheduled_feeds(tmp_
     # without feeds nothing is written
     assert corrected_programs({"program_file": {"path": str(src), "sha256": "ab", "program_id": "cyl"},
                                "corrected": None, **dict(t, feeds=t["feeds"].slice(0, 0))}, {"correct": {}}) == {}
+
+
+def test_with_scheduled_feeds_every_cutting_pass_is_predicted(tmp_path):
+    # the passes claim 8 leaves out (their surface's contact angle under prune.min_contact_deg) load
+    # the tool all the same: with a feed section each cutting pass gets its deflection and feed
+    feed = {"max_deflection_um": LIMIT_UM, "max_chip_mm": 0.5, "max_mm_min": 20000, "min_mm_min": 10, "max_change": 10.0}
+    predicted = {}
+    for name, fd in (("without", None), ("with", feed)):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "nc").mkdir()
+        (tmp_path / name / "nc" / "cyl.nc").write_bytes(_program())
+        stock = trimesh.creation.cylinder(radius=RC + DEPTH, height=4.0, sections=720)
+        stock.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
+        stock.export(tmp_path / name / "stock.stl")
+        path = _workflow(tmp_path / name, max_iter=1, until="feed")
+        wf = yaml.safe_load(path.read_text())
+        wf["prune"] = {"min_contact_deg": 89.9}
+        wf["feed"] = fd
+        path.write_text(yaml.safe_dump(wf))
+        _run(path)
+        t = tmp_path / name / "out" / "tables"
+        cf = pd.read_parquet(t / "cut_filter")
+        predicted[name] = set(pd.read_parquet(t / "angle_prune").query("predict").pass_id)
+        cutting = set(cf.pass_id[cf.is_cutting])
+    assert predicted["without"] < cutting and predicted["with"] == cutting      # every level is under 89.9°
+    f = pd.read_parquet(tmp_path / "with" / "out" / "tables" / "feeds")
+    assert f.set_index("pass_id").peak_deflection_um[sorted(cutting)].notna().all()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pyarrow as pa
 import pytest
+from hypothesis import given, settings, strategies as st
 
 from stages.virtual_machine import STEP_SLACK, VirtualMachine
 
@@ -339,3 +340,90 @@ def test_the_machine_imports_nothing_of_the_prediction():
             for name in names:
                 if name.split(".")[0] == "stages":
                     assert name == "stages.InputError" or name.startswith(allowed), f"{f.name} imports {name}"
+
+
+def _rows(program_id, z, ys, x0=-12.0, x1=12.0, t0=0.0, feed=1000.0):
+    """Zig-zag rows along X at height ``z`` (tool tips), one pass a row, times from ``t0``."""
+    p0 = [(x0 if k % 2 == 0 else x1, y, z) for k, y in enumerate(ys)]
+    p1 = [(x1 if k % 2 == 0 else x0, y, z) for k, y in enumerate(ys)]
+    n = len(p0)
+    dur = abs(x1 - x0) / feed * 60.0
+    return pa.table({"program_id": [program_id] * n, "pass_id": pa.array(range(n), pa.int32()),
+                     "motion": pa.array([1] * n, pa.int8()),
+                     **{f"{a}{e}_mm": [p[i] for p in pts] for e, pts in ((0, p0), (1, p1)) for i, a in enumerate("xyz")},
+                     "feed_mm_min": [feed] * n, "spindle_rpm": [10000.0] * n,
+                     "t_start_s": [t0 + k * dur for k in range(n)], "t_end_s": [t0 + (k + 1) * dur for k in range(n)]})
+
+
+def test_a_program_after_another_meets_what_the_first_left_as_if_both_were_one_program():
+    # program 2 (rows y = 0…2 at the floor) after program 1 (rows y = −2…1 half as deep): its
+    # engagement chained after program 1 is that of its passes at the end of one program holding both
+    stock = {"box": [-30, -30, -20, 30, 30, 0]}
+    first = _rows("a", -0.3, np.arange(-2.0, 1.01, 0.5))
+    second = _rows("b", -0.6, np.arange(0.0, 2.01, 0.5), t0=100.0)
+    both = pa.concat_tables([first, second.set_column(0, "program_id", pa.array(["a"] * len(second)))
+                             .set_column(1, "pass_id", pa.array(range(len(first), len(first) + len(second)), pa.int32()))])
+    alone = VirtualMachine(second, tool(), MAT, RIGID, stock)
+    chained = VirtualMachine(second, tool(), MAT, RIGID, stock, earlier=[(first, tool())])
+    joined = VirtualMachine(both, tool(), MAT, RIGID, stock)
+    want = joined.engaged[len(first):]
+    assert np.array_equal(chained.engaged, want)
+    assert np.unpackbits(alone.engaged).sum() > 1.3 * np.unpackbits(want).sum()    # the first took material
+    # a first program with a larger tool: the cut it leaves differs, and the chained machine sees it
+    big = {**tool(), "diameter_mm": 16.0}
+    other = VirtualMachine(second, tool(), MAT, RIGID, stock, earlier=[(first, big)])
+    assert not np.array_equal(other.engaged, chained.engaged)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2 ** 31 - 1))
+def test_inside_the_swept_tool_against_dense_tool_positions(seed):
+    # brute force: the tool (ball + cylinder up to the stick-out) at 4001 positions along the
+    # segment; points within 5 µm of the swept boundary (the sampling's reach) are not judged
+    from stages.virtual_machine import inside_tool
+    rng = np.random.default_rng(seed)
+    n = 400
+    a = rng.uniform(-3, 3, (n, 3))
+    ab = rng.normal(0, 3, (n, 3)) * rng.choice([0.0, 0.3, 1.0], (n, 1), p=[0.1, 0.3, 0.6]) ** [0, 0, 1]
+    R = rng.uniform(1.0, 5.0, n)
+    side = rng.uniform(0.0, 10.0, n)
+    x = a + rng.uniform(-8, 8, (n, 3))
+    t = np.linspace(0, 1, 4001)
+    c = a[:, None, :] + t[None, :, None] * ab[:, None, :]
+    ball = np.linalg.norm(c - x[:, None, :], axis=2) - R[:, None]
+    plan = np.linalg.norm((c - x[:, None, :])[..., :2], axis=2) - R[:, None]
+    above = np.minimum(x[:, None, 2] - c[..., 2], c[..., 2] + side[:, None] - x[:, None, 2])
+    margin = np.minimum(ball, np.maximum(plan, -above)).min(1)      # < 0 inside, > 0 outside
+    judged = np.abs(margin) > 5e-3
+    got = inside_tool(x, a, ab, R, side)
+    assert judged.sum() > 0.9 * n
+    assert np.array_equal(got[judged], (margin < 0)[judged])
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2 ** 31 - 1))
+def test_removed_points_are_those_inside_an_earlier_pass_s_tool(seed):
+    # the indexed look-up (nearest first, then by 3-D or plan reach with the side index) against
+    # every (point, earlier sub-segment) pair tested directly
+    from types import SimpleNamespace
+
+    from stages.virtual_machine.removal import SweptPasses, inside_tool
+    rng = np.random.default_rng(seed)
+    paths = []
+    for radius, stick in ((3.0, 20.0), (1.5, 8.0)):
+        n = int(rng.integers(1, 30))
+        c0 = rng.uniform([0, 0, -2], [20, 20, 4], (n, 3))
+        c1 = c0 + rng.normal(0, 3, (n, 3)) * [1, 1, 0.5]
+        paths.append((SimpleNamespace(c0=c0, c1=c1, length=np.linalg.norm(c1 - c0, axis=1)), radius, stick))
+    swept = SweptPasses(paths)
+    pts = rng.uniform([-2, -2, -4], [22, 22, 6], (4000, 3))
+    before = rng.integers(0, len(paths[-1][0].c0) + 1, len(pts))
+    got = swept.removed(pts, before, k_near=int(rng.integers(0, 9)))
+    want = np.zeros(len(pts), bool)
+    for k, (path, radius, stick) in enumerate(paths):
+        for j in range(len(path.c0)):
+            earlier = before > j if k == len(paths) - 1 else np.ones(len(pts), bool)
+            hit = inside_tool(pts, np.repeat(path.c0[j:j + 1], len(pts), 0),
+                              np.repeat(path.c1[j:j + 1] - path.c0[j:j + 1], len(pts), 0), radius, stick - radius)
+            want |= earlier & hit
+    assert want.sum() > 0 and np.array_equal(got, want)

@@ -7,7 +7,9 @@ Plain functions over numpy arrays. The measured points become a features dict ``
 |---|---|
 | ``measurements`` | reading a CMM export or Parquet file (``InputError`` naming file and line), writing one |
 | ``associate`` | point → pass association, features, the prediction at the points (deepest tooth passage) |
-| ``effects`` | the effect catalogue: signatures, parameters, physical limits |
+| ``effects`` | the effect catalogue: signatures, parameters, physical limits and the fits' bounds |
+| ``observability`` | what the plan observes: amplitudes held at nominal, nonlinear values not pinned |
+| ``plans`` | plan kinds (full, floors, sections, walls); measured/rejected counts per band and direction |
 | ``servo`` | the servo lag as the envelope of discrete tooth passages near corners |
 | ``fit`` | grid and joint fits, spatial blocks and folds, held-out prediction, noise |
 | ``collinearity`` | an effect next to others: its own contribution, canonical correlation, the size test |

@@ -4,7 +4,6 @@ misses within the stated detection limits).
 """
 from __future__ import annotations
 
-import math
 import time
 from typing import Optional
 
@@ -14,199 +13,22 @@ import pyarrow as pa
 from stages import InputError
 from stages.gap.associate import associate
 from stages.gap.calibration import apply_baseline, calibrate
-from stages.gap.cases import draw_pair, geometry_offsets, random_case, true_order, true_sizes
+from stages.gap.cases import OUTSIDE, draw_pair, outside_case, outside_signature, random_case, true_order, true_sizes
 from stages.gap.measurements import measurement_table
 from stages.gap.predictor import Predictor, diagnose_points
+from stages.gap.scoring import coefficient_error, param_error, param_terms
 from stages.geometry.cutter import Cutter
 from stages.virtual_machine import EFFECTS
-
-
-def param_error(kind: str, true: dict, fit: dict, geom=None, *, flutes: int) -> float:
-    """Relative error of the fitted parameters (vector norm for multi-parameter effects).
-
-    Parameters
-    ----------
-    kind : str
-        The effect.
-    true, fit : dict
-        Its true (as the virtual machine took them) and fitted parameters.
-    geom : ((n, 3) ndarray, (n, 3) ndarray), optional
-        Tool tips (mm) and normals at the points: the machine geometry is scored by its field.
-    flutes : int
-        The tool's flutes (the runout the surface shows is the largest flute offset).
-
-    Returns
-    -------
-    float
-        Relative error (0.2 = 20 %).
-    """
-    if kind == "runout":
-        return abs(fit["e_um"] - runout_effective(true, flutes)) / runout_effective(true, flutes)
-    if kind == "force_scale":
-        return abs(fit["scale"] - true["scale"]) / abs(true["scale"] - 1.0)
-    if kind == "tool_contour":
-        return max(abs(fit["a_um"] - true["a_um"]) / abs(true["a_um"]),
-                   abs(fit["q0_deg"] - true["q0_deg"]) / true["width_deg"],
-                   abs(fit["width_deg"] - true["width_deg"]) / true["width_deg"])
-    if kind == "thermal_drift":
-        a = np.array([true[k] for k in ("ax_um", "ay_um", "az_um")])
-        b = np.array([fit[k] for k in ("ax_um", "ay_um", "az_um")])
-        return max(float(np.linalg.norm(a - b) / np.linalg.norm(a)), abs(fit["tau_s"] - true["tau_s"]) / true["tau_s"])
-    if kind == "servo_corner":
-        return max(abs(fit["a_um"] - true["a_um"]) / abs(true["a_um"]),
-                   abs(fit["lambda_mm"] - true["lambda_mm"]) / true["lambda_mm"])
-    if kind == "machine_geometry" and geom is not None:
-        # the six coefficients are not all identifiable on a part a few mm tall (z terms ~ an offset);
-        # the error of the tool-offset field they make, over the measured points, is
-        tip, n = geom
-        field = lambda g: np.sum(n * geometry_offsets(g, tip), 1)  # noqa: E731
-        ft = field(true)
-        return float(np.sqrt(np.mean((field(fit) - ft) ** 2)) / np.sqrt(np.mean(ft ** 2)))
-    keys = list(true)
-    a = np.array([true[k] for k in keys])
-    b = np.array([fit[k] for k in keys])
-    return float(np.linalg.norm(a - b) / np.linalg.norm(a))
-
-
-def param_terms(kind: str, true: dict, fit: dict, se: dict, cov: Optional[dict] = None, geom=None, *,
-                flutes: int) -> dict:
-    """The fitted parameters of one true effect against the truth, in units of their stated standard
-    errors, and the terms of ``param_error`` with the error each could have at 2 SE.
-
-    ``z``: per parameter with a truth, |fit − truth| / se (None when the diagnosis stated no se; the
-    runout's e against the largest flute offset, its force part e_force_um has no truth here).
-    ``terms``: per term of ``param_error`` (same normalisation), its relative error and ``rel_2se`` =
-    2·se / normaliser — above 0.2 the points cannot pin that term to 20 % (for the drift's amplitude
-    vector and the machine-geometry field, the RMS of the error the covariance implies:
-    √trace(Σ)/‖A‖ and √(mean over the points of (n·offset(δg))²)/RMS of the field).
-
-    Parameters
-    ----------
-    kind, true, fit, geom, flutes
-        As ``param_error``.
-    se : dict
-        Stated standard error per parameter (None: not stated).
-    cov : dict, optional
-        Stated covariance ({"names", "matrix"}).
-
-    Returns
-    -------
-    dict
-        {"z": {parameter: float or None}, "terms": [{"param", "rel_error", "rel_2se",
-        "pinnable_to_20pct"}]}.
-    """
-    def z(key, t):
-        s = se.get(key)
-        return abs(fit[key] - t) / s if s is not None and s > 0 else None
-
-    def rel(key, norm):
-        s = se.get(key)
-        return 2 * s / norm if s is not None else None
-
-    zz, terms = {}, []
-    if kind == "runout":
-        eff = runout_effective(true, flutes)
-        zz["e_um"] = z("e_um", eff)
-        terms.append({"param": "e_um", "rel_error": abs(fit["e_um"] - eff) / eff, "rel_2se": rel("e_um", eff)})
-    elif kind == "force_scale":
-        d = abs(true["scale"] - 1.0)
-        zz["scale"] = z("scale", true["scale"])
-        terms.append({"param": "scale", "rel_error": abs(fit["scale"] - true["scale"]) / d, "rel_2se": rel("scale", d)})
-    elif kind == "tool_contour":
-        w = true["width_deg"]
-        for k, norm in (("a_um", abs(true["a_um"])), ("q0_deg", w), ("width_deg", w)):
-            zz[k] = z(k, true[k])
-            terms.append({"param": k, "rel_error": abs(fit[k] - true[k]) / norm, "rel_2se": rel(k, norm)})
-    elif kind == "thermal_drift":
-        keys = ("ax_um", "ay_um", "az_um")
-        a = np.array([true[k] for k in keys])
-        b = np.array([fit[k] for k in keys])
-        for k in keys + ("tau_s",):
-            zz[k] = z(k, true[k])
-        ses = [se.get(k) for k in keys]
-        terms.append({"param": "a_vector", "rel_error": float(np.linalg.norm(a - b) / np.linalg.norm(a)),
-                      "rel_2se": (2 * math.sqrt(sum(x * x for x in ses)) / float(np.linalg.norm(a))
-                                  if all(x is not None for x in ses) else None)})
-        terms.append({"param": "tau_s", "rel_error": abs(fit["tau_s"] - true["tau_s"]) / true["tau_s"],
-                      "rel_2se": rel("tau_s", true["tau_s"])})
-    elif kind == "servo_corner":
-        for k, norm in (("a_um", abs(true["a_um"])), ("lambda_mm", true["lambda_mm"])):
-            zz[k] = z(k, true[k])
-            terms.append({"param": k, "rel_error": abs(fit[k] - true[k]) / norm, "rel_2se": rel(k, norm)})
-    elif kind == "tool_wear":
-        k = "rate_um_per_m"
-        zz[k] = z(k, true[k])
-        terms.append({"param": k, "rel_error": abs(fit[k] - true[k]) / abs(true[k]), "rel_2se": rel(k, abs(true[k]))})
-    elif kind == "machine_geometry":
-        keys = ("sx", "sy", "sz", "exy", "exz", "eyz")
-        for k in keys:
-            zz[k] = z(k, true[k])
-        if geom is not None:
-            tip, n = geom
-            field = lambda g: np.sum(n * geometry_offsets(g, tip), 1)  # noqa: E731
-            ft = field(true)
-            norm = float(np.sqrt(np.mean(ft ** 2)))
-            r2 = None
-            if cov is not None:
-                idx = [cov["names"].index(f"machine_geometry.{k}") if f"machine_geometry.{k}" in cov["names"] else None
-                       for k in keys]
-                if all(i is not None for i in idx):
-                    S = np.array([[cov["matrix"][i][j] if cov["matrix"][i][j] is not None else np.nan for j in idx]
-                                  for i in idx])
-                    # each coefficient's field per unit, at the points: mean of (N Σ Nᵀ) diagonal
-                    N = np.stack([field({kk: float(kk == k) for kk in keys}) for k in keys], 1)
-                    v = float(np.mean(np.einsum("pi,ij,pj->p", N, S, N)))
-                    r2 = 2 * math.sqrt(v) / norm if np.isfinite(v) and v >= 0 else None
-            terms.append({"param": "field", "rel_error": float(np.sqrt(np.mean((field(fit) - ft) ** 2)) / norm),
-                          "rel_2se": r2})
-    for t in terms:
-        t["pinnable_to_20pct"] = None if t["rel_2se"] is None else bool(t["rel_2se"] <= 0.2)
-    return {"z": zz, "terms": terms}
-
-
-def coefficient_error(true: dict, fit: dict) -> float:
-    """Relative error of a parameter vector (norm), for the record.
-
-    Parameters
-    ----------
-    true, fit : dict
-        {parameter: float}; the keys of ``true`` found in ``fit`` count.
-
-    Returns
-    -------
-    float
-    """
-    keys = [k for k in true if k in fit]
-    a = np.array([true[k] for k in keys], float)
-    b = np.array([fit[k] for k in keys], float)
-    return float(np.linalg.norm(a - b) / max(np.linalg.norm(a), 1e-12))
-
-
-def runout_effective(true: dict, flutes: int) -> float:
-    """The largest flute offset e·max_j cos(2πj/N + phase): what the surface shows.
-
-    Parameters
-    ----------
-    true : dict
-        ``e_um`` (µm) and ``phase_deg`` of the runout.
-    flutes : int
-        N.
-
-    Returns
-    -------
-    float
-        µm.
-    """
-    return true["e_um"] * max(math.cos(2 * math.pi * j / flutes + math.radians(true["phase_deg"])) for j in range(flutes))
 
 
 def check_kinds(kinds):
     """The effect kinds (list of str) the blind check cycles through, checked; None: all."""
     if not kinds:
         return None
-    bad = [k for k in kinds if k != "none" and k not in EFFECTS]
+    bad = [k for k in kinds if k != "none" and k not in EFFECTS and k not in OUTSIDE]
     if bad:
-        raise InputError(f"--kinds: unknown {bad} (known: none, {', '.join(EFFECTS)})")
+        raise InputError(f"--kinds: unknown {bad} (known: none, {', '.join(EFFECTS)}; outside the catalogue: "
+                         f"{', '.join(OUTSIDE)})")
     return list(kinds)
 
 
@@ -261,7 +83,7 @@ def blind_cases(vm, passes: pa.Table, errors: Optional[pa.Table], tool, pts: np.
     rng = np.random.default_rng(seed)
     plan_cases = [[kinds[i % len(kinds)]] for i in range(cases)]
     rng.shuffle(plan_cases)
-    pool = [k for k in kinds if k != "none"] or list(EFFECTS)
+    pool = [k for k in kinds if k != "none" and k not in OUTSIDE] or list(EFFECTS)
     for _ in range(pairs):
         # the larger effect of a pair acts over the whole part (a corner effect is small in RMS)
         a = rng.choice([k for k in pool if k != "servo_corner"])
@@ -279,9 +101,20 @@ def blind_cases(vm, passes: pa.Table, errors: Optional[pa.Table], tool, pts: np.
     for ci, kinds_i in enumerate(plan_cases):
         if len(kinds_i) == 2:
             truth = draw_pair(rng, kinds_i, pool, vm, pts, nrm, ctx)
+        elif kinds_i[0] in OUTSIDE:
+            truth = {kinds_i[0]: outside_case(rng, kinds_i[0], pts, nrm)}
         else:
             truth = {k: random_case(rng, k, ctx) for k in kinds_i if k != "none"}
         sigma = float(rng.uniform(*noise))
+        outside = {k: outside_signature(k, v, pts, nrm) for k, v in truth.items() if k in OUTSIDE}
+        if outside:
+            err = vm.probe(pts, nrm, {}, sigma, rng) + sum(outside.values())
+            results.append(_outside_case(ci, truth, outside, sigma, res=diagnose_points(apply_baseline(
+                associate(measurement_table(ids, pts, nrm, err), passes, errors, tool, off_part_mm, deflection)[0],
+                s0, corner), None, floor, predictor)))
+            if progress:
+                progress(ci, results[-1])
+            continue
         err = vm.probe(pts, nrm, truth, sigma, rng)
         F, rej = associate(measurement_table(ids, pts, nrm, err), passes, errors, tool, off_part_mm, deflection)
         res = diagnose_points(apply_baseline(F, s0, corner), None, floor, predictor)
@@ -291,13 +124,15 @@ def blind_cases(vm, passes: pa.Table, errors: Optional[pa.Table], tool, pts: np.
                 "found": res["effects"], "params": res["params"], "sigma_est_um": res["sigma_um"],
                 "rms_before_um": res["rms_before_um"], "rms_after_um": res["rms_after_um"], "shrink": res["shrink"],
                 "rms_after_terms_um": res.get("rms_after_terms_um"), "how_added": res.get("how_added"),
-                "shrink_where_acting": res["shrink_where_acting"],
-                "n_rejected": len(rej)}
+                "shrink_where_acting": res["shrink_where_acting"], "possible": res.get("possible", []),
+                "unexplained": res.get("unexplained"), "n_rejected": len(rej)}
+        case["not_observable"] = {e: [k for k, w in d.items() if w] for e, d in res.get("observability", {}).items()}
         top = res["effect"]
         case["top1_ok"] = (top == (by_size[0] if by_size else "none"))
         case["ambiguous_with"] = res.get("ambiguous_with", {})
         if len(truth) == 1 and top in truth:
-            case["param_error"] = param_error(top, truth[top], res["params"][top], geom, flutes=flutes)
+            case["param_error"] = param_error(top, truth[top], res["params"][top], geom, flutes=flutes,
+                                              not_observable=case["not_observable"].get(top, ()))
             case["coefficient_error"] = coefficient_error(truth[top], res["params"][top])
         # the fitted parameters against the truth in units of their stated standard errors
         case["params_se"] = res.get("params_se", {})
@@ -326,7 +161,8 @@ def blind_cases(vm, passes: pa.Table, errors: Optional[pa.Table], tool, pts: np.
         results.append(case)
         if progress:
             progress(ci, case)
-    singles = [c for c in results if len(c["truth"]) <= 1]
+    outside = [c for c in results if "outside_ok" in c]
+    singles = [c for c in results if len(c["truth"]) <= 1 and "outside_ok" not in c]
     eff = [c for c in singles if c["truth"]]
     zs = lambda cs: [z for c in cs for zk in c.get("param_z", {}).values() for z in zk.values()]  # noqa: E731
     none = [c for c in singles if not c["truth"]]
@@ -360,10 +196,47 @@ def blind_cases(vm, passes: pa.Table, errors: Optional[pa.Table], tool, pts: np.
                            "top1": float(np.mean([c["top1_ok"] for c in singles if (list(c["truth"]) or ["none"])[0] == k]))
                            if any((list(c["truth"]) or ["none"])[0] == k for c in singles) else None}
                        for k in kinds},
+        "unexplained": _unexplained_summary(outside, singles),
+        "possible": {"single_cases_with_possible": sum(1 for c in singles if c["possible"]),
+                     "single_cases_with_extra_claimed": sum(1 for c in eff if len(c["found"]) > 1),
+                     "none_cases_claimed": sum(1 for c in none if c["found"] or c["top1_ok"] is False)},
         "wall_s": time.perf_counter() - t_start,
         "cases_detail": results,
     }
     return summary
+
+
+def _outside_case(ci: int, truth: dict, sig: dict, sigma: float, res: dict) -> dict:
+    """One case of an error outside the catalogue, scored: the answer must be "unexplained", or
+    "none" when the error's peak on the points is under 3σ; a periodic one's axis and period
+    (within 10 %) must be found."""
+    kind, p = next(iter(truth.items()))
+    peak = float(np.abs(sig[kind]).max())
+    un = res.get("unexplained") or {}
+    per = un.get("periodic")
+    case = {"case": ci, "truth": truth, "noise_um": sigma, "true_peak_um": peak, "true_rms_um": float(np.sqrt(np.mean(
+        sig[kind] ** 2))), "answer": res["effect"], "found": res["effects"], "possible": res.get("possible", []),
+        "unexplained": res.get("unexplained"), "shrink": res["shrink"], "params": res["params"]}
+    case["outside_ok"] = res["effect"] == "unexplained" or (res["effect"] == "none" and peak < 3 * sigma)
+    if kind == "periodic":
+        case["period_ok"] = bool(per is not None and per["axis"] == "xyz"[p["axis"]]
+                                 and abs(per["period_mm"] - p["period_mm"]) <= 0.1 * p["period_mm"])
+    return case
+
+
+def _unexplained_summary(outside: list, singles: list) -> dict:
+    """The "unexplained" figures: outside-catalogue cases answered right, periods recovered, and
+    catalogue cases (and none) answered "unexplained" or with structure left."""
+    per = [c for c in outside if "period_ok" in c]
+    return {"outside_cases": len(outside), "outside_ok": sum(c["outside_ok"] for c in outside),
+            "outside_ok_fraction": float(np.mean([c["outside_ok"] for c in outside])) if outside else None,
+            "by_kind": {k: {"n": sum(1 for c in outside if k in c["truth"]),
+                            "ok": sum(c["outside_ok"] for c in outside if k in c["truth"])} for k in OUTSIDE},
+            "periodic_period_within_10pct": sum(c["period_ok"] for c in per), "periodic_cases": len(per),
+            "outside_with_catalogue_claims": sum(1 for c in outside if c["found"]),
+            "catalogue_cases_answered_unexplained": sum(1 for c in singles if c["found"] == [] and c["unexplained"]
+                                                        and c["truth"]),
+            "catalogue_cases_with_structure_left": sum(1 for c in singles if c["unexplained"])}
 
 
 # the parameters behind a vector term of ``param_terms``

@@ -237,3 +237,49 @@ def true_order(truth: dict, vm, pts, nrm) -> list:
         return list(truth)
     size = true_sizes(truth, vm, pts, nrm)
     return sorted(size, key=lambda k: -size[k])
+
+
+# errors outside the catalogue (issue 59): a periodic offset along a machine axis (a ballscrew's
+# pitch error, a guide's waviness) of 2-6 µm, two to six periods over the points' span; a local
+# bump of 3-10 µm whose width (σ of a Gaussian) is 1/25-1/10 of the part (wider ones are smooth
+# fields the catalogue's own effects take)
+OUTSIDE = ("periodic", "bump")
+OUTSIDE_RANGES = {"periodic": (2.0, 6.0), "bump": (3.0, 10.0)}
+
+
+def outside_case(rng, kind: str, pts: np.ndarray, nrm: np.ndarray) -> dict:
+    """Random parameters of an error outside the catalogue (``outside_signature``).
+
+    Parameters
+    ----------
+    rng : numpy.random.Generator
+    kind : str
+        ``periodic`` or ``bump``.
+    pts, nrm : (n, 3) ndarray
+        Plan points (mm) and unit normals.
+
+    Returns
+    -------
+    dict
+        periodic: ``axis`` (0-2, along which it varies), ``direction`` (0-2, of the offset; one the
+        normals see), ``period_mm``, ``a_um``, ``phase_rad``; bump: ``centre_mm``, ``width_mm``, ``a_um``.
+    """
+    if kind == "periodic":
+        axis = int(rng.integers(2))
+        span = float(np.ptp(pts[:, axis]))
+        seen = [j for j in range(3) if np.sqrt(np.mean(nrm[:, j] ** 2)) >= 0.3]
+        return {"axis": axis, "direction": int(rng.choice(seen)), "period_mm": float(rng.uniform(span / 6, span / 2)),
+                "a_um": float(rng.uniform(*OUTSIDE_RANGES["periodic"])), "phase_rad": float(rng.uniform(0, 2 * np.pi))}
+    if kind == "bump":
+        size = float(np.ptp(pts, axis=0).max())
+        return {"centre_mm": pts[rng.integers(len(pts))].tolist(), "width_mm": float(rng.uniform(size / 25, size / 10)),
+                "a_um": float(rng.choice([-1.0, 1.0]) * rng.uniform(*OUTSIDE_RANGES["bump"]))}
+    raise ValueError(kind)
+
+
+def outside_signature(kind: str, p: dict, pts: np.ndarray, nrm: np.ndarray) -> np.ndarray:
+    """Deviation along the normals (µm) of an error outside the catalogue (``outside_case``)."""
+    if kind == "periodic":
+        return (p["a_um"] * nrm[:, p["direction"]]
+                * np.sin(2 * np.pi * pts[:, p["axis"]] / p["period_mm"] + p["phase_rad"]))
+    return p["a_um"] * np.exp(-np.sum((pts - np.asarray(p["centre_mm"])) ** 2, 1) / (2 * p["width_mm"] ** 2))

@@ -8,8 +8,9 @@ when its signature is nearly collinear with theirs, its own fitted contribution)
 hypot(σ, model floor). Greedy (at most ``MAX_EFFECTS``): the best significant effect is added — a
 simpler one when the richer one is not better by the χ² margin of its extra parameters — with the
 nonlinear parameters of those already chosen re-fitted; then a swap pass and a backward check,
-repeated while the check drops an effect (``settle``). An effect whose addition takes a fit beyond a
-real machine's limits (``LIMITS``) is not chosen, and listed. The reported parameters are the chosen
+repeated while the check drops an effect (``settle``). Every fit is bounded to a real machine's limits
+(``stages.gap.effects.effect_bounds``), and only the amplitudes the points observe are fitted
+(``stages.gap.observability``); the others stay at nominal. The reported parameters are the chosen
 effects fitted jointly on all points (``stages.gap.uncertainty``).
 """
 from __future__ import annotations
@@ -20,9 +21,11 @@ from typing import Optional
 import numpy as np
 from scipy.stats import chi2
 
-from stages.gap.effects import beyond_limits, catalogue
+from stages.gap.effects import catalogue
+from stages.gap.observability import nonlinear_observability, restrict
 from stages.gap.collinearity import acting_rms, collinear_size, collinearity, insample_fit, insample_sse
-from stages.gap.fit import ALPHA, blocks, cv_predict, fit_joint, folds, noise_sigma, params_of, rms, shrink_where_acting
+from stages.gap.fit import (ALPHA, blocks, bounds_of, cv_predict, fit_joint, folds, lstsq_bounded, noise_sigma, rms,
+                            shrink_where_acting)
 from stages.gap.uncertainty import ambiguous_with, detection_limits, final_fit, param_uncertainty
 
 MAX_EFFECTS = 3
@@ -45,7 +48,7 @@ def diagnose(F: dict, noise_um: Optional[float] = None, floor_um: float = 0.0) -
     dict
         effect, effects (by size), params, params_se, params_cov, params_se_info, ranking (list of
         dicts), sigma_um, rms/p95/max before and after (held-out, µm), shrink, shrink_where_acting,
-        detection_limits, ambiguous_with, beyond_limits; ``_after`` (n,) the held-out residual,
+        detection_limits, ambiguous_with, observability, at_limits; ``_after`` (n,) the held-out residual,
         ``_contrib`` per effect (n,), ``_blocks``, ``_fold``, ``_chosen`` [(Effect, th)].
     """
     y = F["residual_um"].astype(float)
@@ -53,13 +56,13 @@ def diagnose(F: dict, noise_um: Optional[float] = None, floor_um: float = 0.0) -
     blk = blocks(F)
     fold = folds(blk)
     sigma = float(noise_um) if noise_um else noise_sigma(F, y)
-    cat = catalogue(F)
+    # what the points observe: amplitudes they do not determine are held at nominal in every fit
+    cat, observability = restrict(catalogue(F), F, sigma, ALPHA)
     chosen: list = []                          # (Effect, grid value)
     ranking = []
     base_pred = np.zeros(n)
     sse_base = float(np.sum(y ** 2))
     first_round = None
-    rejected: list = []                        # candidates whose fit went beyond the physical limits
     for step in range(MAX_EFFECTS):
         rows = []
         for eff in cat:
@@ -80,7 +83,7 @@ def diagnose(F: dict, noise_um: Optional[float] = None, floor_um: float = 0.0) -
             # candidate: the in-sample contribution of one fitted to the model's own floor can
             # reach σ/2 where it holds out at less (100,000 points: a 0.5 µm tool-contour dent next
             # to the true drift). Significance stays with the held-out gain; a cancelling pair is
-            # caught by ``LIMITS``.
+            # held by the fits' bounds (``effect_bounds``).
             delta = pred - base_pred
             support = max(int(np.sum(np.abs(delta) > 0.1 * np.abs(delta).max())) if np.any(delta) else n, 1)
             explained = math.sqrt(max(sse_base - sse, 0.0) / support)
@@ -94,27 +97,14 @@ def diagnose(F: dict, noise_um: Optional[float] = None, floor_um: float = 0.0) -
         rows.sort(key=lambda r: -r["gain"])
         if first_round is None:
             first_round = list(rows)
-        picked = None
-        while rows:
-            top = _pick(rows)
-            if top is None:
-                break
-            ch, th, beta = fit_joint(F, y, np.ones(n, bool), chosen, top["eff"])
-            bad = beyond_limits(F, ch + [(top["eff"], th)], beta)
-            if not bad:
-                picked = (ch, th, top)
-                break
-            # a cancelling combination: the candidate is not chosen at this step
-            rejected.append({"step": step + 1, "effect": top["effect"], "beyond_limits": bad,
-                             "params": params_of(ch + [(top["eff"], th)], beta)})
-            rows = [r for r in rows if r is not top]
-        if picked is None:
+        top = _pick(rows)
+        if top is None:
             break
-        chosen, th, top = picked
-        chosen.append((top["eff"], th))
+        ch, th, _ = fit_joint(F, y, np.ones(n, bool), chosen, top["eff"])
+        chosen = ch + [(top["eff"], th)]
         sse_base = top["sse"]
         base_pred = top["pred"]
-    chosen, sse_base, base_pred = settle(F, y, fold, cat, chosen, sse_base, base_pred, sigma, floor_um, rejected)
+    chosen, sse_base, base_pred = settle(F, y, fold, cat, chosen, sse_base, base_pred, sigma, floor_um)
     # final fit on all points: parameters and each effect's contribution
     params, contrib = {}, {}
     if chosen:
@@ -127,6 +117,13 @@ def diagnose(F: dict, noise_um: Optional[float] = None, floor_um: float = 0.0) -
             k += e.n_lin
     # how well the data pin each parameter: the final model linearised at the fit
     unc = param_uncertainty(F, y, chosen, beta if chosen else np.zeros(0), sigma)
+    for e, t in chosen:                        # amplitudes held at nominal: no standard error
+        for k, why in observability.get(e.name, {}).items():
+            if why is not None:
+                unc["se"][e.name][k] = None
+                unc["not_identifiable"][f"{e.name}.{k}"] = why
+    for name, d in nonlinear_observability(F, chosen, params, unc["se"]).items():
+        observability[name].update(d)
     order = sorted(contrib, key=lambda nme: -float(np.sqrt(np.mean(contrib[nme] ** 2))))
     limits = detection_limits(F, chosen, cat, sigma, floor_um)
     after = y - base_pred
@@ -156,13 +153,15 @@ def diagnose(F: dict, noise_um: Optional[float] = None, floor_um: float = 0.0) -
         "ranking": ranking,
         "detection_limits": limits,
         "ambiguous_with": ambiguous_with(limits, order),
-        "beyond_limits": rejected,
+        "observability": observability,
+        # fits are bounded to the physical limits (``effect_bounds``); an effect whose fit sits at one
+        "at_limits": _at_limits(F, chosen, beta) if chosen else [],
         "_after": after, "_contrib": contrib, "_blocks": blk, "_fold": fold, "_chosen": chosen,
     }
 
 
 def settle(F, y, fold, cat: list, chosen: list, sse_base: float, base_pred: np.ndarray, sigma: float,
-           floor_um: float, rejected: list):
+           floor_um: float):
     """The forward selection's effects settled: a swap pass (``swap_pass``), then the backward check
     (``backward_check``), again while the check drops an effect. The swaps were judged next to the
     dropped effect: without it a richer effect may be no better than a simpler one (a 3.5 µm tool
@@ -181,15 +180,13 @@ def settle(F, y, fold, cat: list, chosen: list, sse_base: float, base_pred: np.n
         Their held-out prediction (µm).
     sigma, floor_um : float
         Probe noise and model floor (µm).
-    rejected : list
-        Appended with the combinations beyond ``LIMITS``.
 
     Returns
     -------
     chosen, sse, base_pred
     """
     for _ in range(MAX_EFFECTS):
-        chosen, sse_base, base_pred = swap_pass(F, y, fold, cat, chosen, sse_base, base_pred, sigma, rejected)
+        chosen, sse_base, base_pred = swap_pass(F, y, fold, cat, chosen, sse_base, base_pred, sigma)
         n_before = len(chosen)
         chosen, sse_base, base_pred = backward_check(F, y, fold, chosen, sse_base, base_pred, sigma, floor_um)
         if len(chosen) == n_before or len(chosen) < 2:
@@ -197,8 +194,7 @@ def settle(F, y, fold, cat: list, chosen: list, sse_base: float, base_pred: np.n
     return chosen, sse_base, base_pred
 
 
-def swap_pass(F, y, fold, cat: list, chosen: list, sse_base: float, base_pred: np.ndarray, sigma: float,
-              rejected: list):
+def swap_pass(F, y, fold, cat: list, chosen: list, sse_base: float, base_pred: np.ndarray, sigma: float):
     """One swap pass: an effect picked early may have soaked up part of a later one; each chosen
     effect is replaced by each other candidate when that fits the held-out blocks significantly
     better, or equally well (within the χ² margin) with fewer parameters. Arguments and result as
@@ -224,12 +220,7 @@ def swap_pass(F, y, fold, cat: list, chosen: list, sse_base: float, base_pred: n
                     sse_in = insample_sse(F, y, rest, eff)
                     better = (better and sse_in < sse_in_cur - margin) if dp > 0 else sse_in < sse_in_cur + margin
                 if better:
-                    ch, th, beta = fit_joint(F, y, np.ones(n, bool), rest, eff)
-                    bad = beyond_limits(F, ch + [(eff, th)], beta)
-                    if bad:
-                        rejected.append({"step": "swap", "effect": eff.name, "beyond_limits": bad,
-                                         "params": params_of(ch + [(eff, th)], beta)})
-                        continue
+                    ch, th, _ = fit_joint(F, y, np.ones(n, bool), rest, eff)
                     rest = ch
                     chosen = rest[:i] + [(eff, th)] + rest[i:]
                     sse_base, base_pred = sse, pred
@@ -246,7 +237,7 @@ def backward_check(F, y, fold, chosen: list, sse_base: float, base_pred: np.ndar
         drops = []
         # each effect's own contribution in the joint fit on all points (the size test of ``diagnose``)
         X = np.hstack([e.basis(F, t) for e, t in chosen])
-        beta = np.linalg.lstsq(X, y, rcond=None)[0]
+        beta = lstsq_bounded(X, y, *bounds_of(F, chosen))
         ks = np.cumsum([0] + [e.n_lin for e, _ in chosen])
         for i, (e, t) in enumerate(chosen):
             rest = chosen[:i] + chosen[i + 1:]
@@ -268,6 +259,15 @@ def backward_check(F, y, fold, chosen: list, sse_base: float, base_pred: np.ndar
         sse_base += d_sse
         base_pred = pred
     return chosen, sse_base, base_pred
+
+
+def _at_limits(F, chosen: list, beta: np.ndarray) -> list[str]:
+    """The chosen effects with an amplitude at a bound of its fit (within 0.1 % of it): pressed
+    against a physical limit, a sign that the catalogue does not describe what the points show."""
+    lo, hi = bounds_of(F, chosen)
+    hit = (np.isfinite(lo) & (beta - lo <= 1e-3 * np.abs(lo)) & (lo != 0)) | (np.isfinite(hi) & (hi - beta <= 1e-3 * np.abs(hi)))
+    ks = np.cumsum([0] + [e.n_lin for e, _ in chosen])
+    return [e.name for i, (e, _) in enumerate(chosen) if hit[ks[i]:ks[i + 1]].any()]
 
 
 def _pick(rows: list) -> Optional[dict]:

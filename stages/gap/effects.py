@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 
@@ -24,7 +25,6 @@ from stages.gap.servo import servo_signature, servo_smooth
 
 EFFECT_NAMES = ("runout", "tool_contour", "tool_wear", "thermal_drift", "force_scale", "servo_corner",
                 "machine_geometry")
-NONNEG = {"runout", "tool_wear"}     # amplitudes constrained to be ≥ 0
 
 
 @dataclass
@@ -38,20 +38,42 @@ class Effect:
     grid : list of tuple
         Nonlinear parameter values searched (``[()]`` when the effect has none).
     n_lin : int
-        Number of linear parameters (amplitudes).
+        Number of linear parameters (amplitudes) fitted.
+    keep : tuple of int, optional
+        The amplitudes fitted, as indices into the effect's ``n_full`` amplitudes: the others are not
+        observable on the points and held at nominal, 0 (``stages.gap.observability.restrict``).
+    n_full : int, optional
+        The effect's own number of amplitudes (= ``n_lin`` when ``keep`` is None).
     """
 
     name: str
     grid: list                     # nonlinear parameter values (tuples), [()] when none
     n_lin: int
+    keep: Optional[tuple] = None
+    n_full: Optional[int] = None
 
     def basis(self, F, th) -> np.ndarray:
         """Signature columns at the nonlinear value ``th``: (n, n_lin), µm per unit amplitude."""
-        return _BASIS[self.name](F, th)
+        X = _BASIS[self.name](F, th)
+        return X if self.keep is None else X[:, list(self.keep)]
+
+    def full_beta(self, beta) -> np.ndarray:
+        """The effect's ``n_full`` amplitudes from the fitted ``beta`` (n_lin,): 0 where not fitted."""
+        if self.keep is None:
+            return np.asarray(beta, float)
+        out = np.zeros(self.n_full)
+        out[list(self.keep)] = beta
+        return out
 
     def params(self, beta, th) -> dict:
         """The reported parameters of amplitudes ``beta`` (n_lin,) at ``th`` ({name: float})."""
-        return _PARAMS[self.name](beta, th)
+        return _PARAMS[self.name](self.full_beta(beta), th)
+
+    def linear_keys(self, th) -> list:
+        """Reported names of the fitted amplitudes (the first keys of ``params``), in order."""
+        n = self.n_full or self.n_lin
+        keys = list(_PARAMS[self.name](np.zeros(n), th))[:n]
+        return keys if self.keep is None else [keys[j] for j in self.keep]
 
     @property
     def n_params(self):
@@ -118,46 +140,62 @@ _PARAMS = {
     "machine_geometry": lambda b, th: dict(zip(("sx", "sy", "sz", "exy", "exz", "eyz"), map(float, b))),
 }
 
-# Physical limits of a fitted effect: 4 × the largest the seeds measured on real machines (seed 003:
+# Physical limits of a fitted effect (the bounds of its fit, ``effect_bounds``): 4 × the largest the seeds measured on real machines (seed 003:
 # thermal drift ≈ 50 µm after 3 h of running; an X → Y error of 0–50 µm over ±20 mm, 2.5 µm/mm; a new
 # tool ≈ 10 µm off its nominal profile from holder runout). A fit beyond them is no cause but two
 # effects cancelling each other where their signatures are nearly collinear (on two raster rows: a
 # 226 µm drift against a −271 µm/mm scale error, next to the real 10 µm runout); such a combination
-# is not chosen. Sizes: the drift reached by the end of the run |A|·(1 − exp(−T/τ)) (µm), the
+# is not fitted. Sizes: the drift reached by the end of the run |A|·(1 − exp(−T/τ)) (µm), the
 # largest geometry coefficient (µm/mm), the runout e and the contour amplitude |a| (µm).
 LIMITS = {"thermal_drift": 200.0, "machine_geometry": 10.0, "runout": 40.0, "tool_contour": 40.0}
 
 
-def beyond_limits(F, effects: list, beta: np.ndarray) -> list[str]:
-    """Names of the effects whose fitted size exceeds its physical limit (``LIMITS``).
+CONTOUR_WIDTH_DEG = (3.0, 20.0)      # a local profile error, not a size error
+FORCE_SCALE_RANGE = (0.1, 10.0)      # a force model off by more than 10× is no model at all
+SERVO_LIMIT_UM = 120.0               # 4 × the largest lag the blind check draws
+
+
+def effect_bounds(F, e: Effect, th) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds of an effect's fitted amplitudes (bounded least squares, ``stages.gap.fit.solve_bounded``):
+    the physical limits of ``LIMITS`` as a box — each drift axis so that even three equal axes
+    stay within the drift limit by the run's end, each geometry coefficient, the runout e (≥ 0)
+    and the contour amplitude; the wear rate ≥ 0; the force scale within ``FORCE_SCALE_RANGE``;
+    the servo lag within ±``SERVO_LIMIT_UM``.
 
     Parameters
     ----------
     F : dict
-        Features (``t_s`` (n,) s: the run's duration bounds the drift reached).
-    effects : list of (Effect, tuple)
-        The effects and their nonlinear values.
-    beta : (p,) ndarray
-        Their linear parameters in order.
+        Features (``t_s`` (n,) s).
+    e : Effect
+    th : tuple
+        Its nonlinear value.
 
     Returns
     -------
-    list of str
+    lo, hi : (e.n_lin,) ndarray
     """
-    T = max(float(np.max(F["t_s"])), 0.0) if len(F["t_s"]) else 0.0
-    out, k = [], 0
-    for e, th in effects:
-        b = np.asarray(beta[k:k + e.n_lin], float)
-        k += e.n_lin
-        if e.name not in LIMITS:
-            continue
-        if e.name == "thermal_drift":
-            size = float(np.linalg.norm(b[:3])) * (1.0 - math.exp(-T / max(th[0], 1e-12)))
-        else:
-            size = float(np.abs(b).max())
-        if size > LIMITS[e.name]:
-            out.append(e.name)
-    return out
+    n = e.n_full or e.n_lin
+    lo, hi = np.full(n, -np.inf), np.full(n, np.inf)
+    if e.name == "thermal_drift":
+        T = max(float(np.max(F["t_s"])), 0.0) if len(F["t_s"]) else 0.0
+        reach = max(1.0 - math.exp(-T / max(float(th[0]), 1e-12)), 1e-12)
+        lo[:], hi[:] = -LIMITS[e.name] / math.sqrt(3.0) / reach, LIMITS[e.name] / math.sqrt(3.0) / reach
+    elif e.name == "machine_geometry":
+        lo[:], hi[:] = -LIMITS[e.name], LIMITS[e.name]
+    elif e.name == "runout":
+        lo[:], hi[:] = -LIMITS[e.name], LIMITS[e.name]
+        lo[0] = 0.0
+    elif e.name == "tool_contour":
+        lo[:], hi[:] = -LIMITS[e.name], LIMITS[e.name]
+    elif e.name == "tool_wear":
+        lo[:] = 0.0
+    elif e.name == "force_scale":
+        lo[:], hi[:] = FORCE_SCALE_RANGE[0] - 1.0, FORCE_SCALE_RANGE[1] - 1.0
+    elif e.name == "servo_corner":
+        lo[:], hi[:] = -SERVO_LIMIT_UM, SERVO_LIMIT_UM
+    if e.keep is not None:
+        lo, hi = lo[list(e.keep)], hi[list(e.keep)]
+    return lo, hi
 
 
 def catalogue(F) -> list[Effect]:
@@ -176,8 +214,8 @@ def catalogue(F) -> list[Effect]:
     """
     qlo, qhi = np.percentile(F["q_deg"], [1, 99])
     T = max(float(F["t_s"].max()), 1e-6)
-    q0s = np.arange(max(0.0, qlo), qhi + 1e-9, 2.0)
-    widths = [4.0, 5.0, 6.5, 8.0, 10.0, 12.5, 15.0, 17.5, 20.0]   # a local profile error, not a size error
+    q0s = np.arange(max(0.0, qlo), min(qhi, 90.0) + 1e-9, 2.0)
+    widths = [4.0, 5.0, 6.5, 8.0, 10.0, 12.5, 15.0, 17.5, 20.0]
     taus = list(T * np.geomspace(0.02, 10.0, 28))
     lams = list(np.geomspace(0.05, 5.0, 24))
     cat = [

@@ -19,19 +19,69 @@ from typing import Optional
 
 import numpy as np
 
-from stages.gap.effects import NONNEG, Effect
+from stages.gap.effects import Effect, effect_bounds
 from stages.gap.servo import refine_servo
 
 ALPHA = 1e-3          # false-claim rate of the per-effect test (a priori, not tuned)
 K_FOLDS = 5
 
 
+def bounds_of(F, effects: list) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds of the linear parameters of ``effects`` [(Effect, th)], concatenated
+    (``stages.gap.effects.effect_bounds``)."""
+    if not effects:
+        return np.zeros(0), np.zeros(0)
+    b = [effect_bounds(F, e, th) for e, th in effects]
+    return np.concatenate([x[0] for x in b]), np.concatenate([x[1] for x in b])
+
+
+def solve_bounded(G: np.ndarray, g: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """min βᵀGβ − 2gᵀβ within lo ≤ β ≤ hi (bounded least squares from the normal equations).
+
+    The unconstrained solution when it is inside the box; else ``scipy.optimize.lsq_linear`` on
+    ‖Lᵀβ − L⁻¹g‖² (G = LLᵀ, a relative ridge of 1e-12 keeping L finite where G is singular).
+
+    Parameters
+    ----------
+    G : (p, p) ndarray
+    g : (p,) ndarray
+    lo, hi : (p,) ndarray
+        Bounds (±inf: none).
+
+    Returns
+    -------
+    (p,) ndarray
+    """
+    if len(g) == 0:
+        return np.zeros(0)
+    beta = np.linalg.lstsq(G, g, rcond=None)[0]
+    if np.all(beta >= lo) and np.all(beta <= hi):
+        return beta
+    from scipy.optimize import lsq_linear
+    ridge = 1e-12 * max(float(np.trace(G)), 1e-300) / len(g)
+    L = np.linalg.cholesky(G + ridge * np.eye(len(g)))
+    return lsq_linear(L.T, np.linalg.solve(L, g), bounds=(lo, hi), method="bvls").x
+
+
+def lstsq_bounded(X: np.ndarray, y: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Least squares of ``y`` on the columns of ``X`` within the bounds: the unconstrained solution
+    when inside them, else ``scipy.optimize.lsq_linear`` (BVLS) on X itself."""
+    if X.shape[1] == 0:
+        return np.zeros(0)
+    beta = np.linalg.lstsq(X, y, rcond=None)[0]
+    if np.all(beta >= lo) and np.all(beta <= hi):
+        return beta
+    from scipy.optimize import lsq_linear
+    return lsq_linear(X, y, bounds=(lo, hi), method="bvls").x
+
+
 def fit_effects(F, y, train, chosen: list, cand: Effect):
     """Fit ``chosen`` (fixed nonlinear params) + ``cand`` on ``train``: best grid value, betas.
 
     Grid search over the candidate's nonlinear parameters, then one coordinate-wise refinement
-    between the best value's grid neighbours (9 values per parameter). Linear parameters by least
-    squares (normal equations); runout and wear are constrained to be ≥ 0.
+    between the best value's grid neighbours (9 values per parameter). Linear parameters by bounded
+    least squares (normal equations, ``solve_bounded``: the physical limits of
+    ``stages.gap.effects.effect_bounds``).
 
     Parameters
     ----------
@@ -52,15 +102,14 @@ def fit_effects(F, y, train, chosen: list, cand: Effect):
     Gbb = base.T @ base
     gb = base.T @ yt
     yy = float(yt @ yt)
+    lo_b, hi_b = bounds_of(F, chosen)
 
     def solve(th):
         Xc = cand.basis(F, th)[train]
         G = np.block([[Gbb, base.T @ Xc], [Xc.T @ base, Xc.T @ Xc]])
         g = np.concatenate([gb, Xc.T @ yt])
-        beta = np.linalg.lstsq(G, g, rcond=None)[0]
-        if cand.name in NONNEG and beta[len(gb)] < 0:
-            beta = np.concatenate([np.linalg.lstsq(Gbb, gb, rcond=None)[0] if len(gb) else np.zeros(0),
-                                   np.zeros(cand.n_lin)])
+        lo_c, hi_c = effect_bounds(F, cand, th)
+        beta = solve_bounded(G, g, np.concatenate([lo_b, lo_c]), np.concatenate([hi_b, hi_c]))
         sse = yy - 2 * beta @ g + beta @ G @ beta
         return float(sse), beta
 
@@ -208,13 +257,7 @@ def fit_joint(F, y, train, chosen: list, cand: Effect):
             chosen[i] = (e, t2)
         th, _ = fit_effects(F, y, sub, chosen, cand)
     X = np.hstack([e.basis(F, t) for e, t in chosen] + [cand.basis(F, th)])
-    beta = np.linalg.lstsq(X[train], y[train], rcond=None)[0]
-    k = X.shape[1] - cand.n_lin                    # the candidate's first linear parameter
-    if cand.name in NONNEG and beta[k] < 0 and chosen:
-        Xb = X[:, :k]
-        beta = np.concatenate([np.linalg.lstsq(Xb[train], y[train], rcond=None)[0], np.zeros(cand.n_lin)])
-    elif cand.name in NONNEG and beta[k] < 0:
-        beta = np.zeros(X.shape[1])
+    beta = lstsq_bounded(X[train], y[train], *bounds_of(F, chosen + [(cand, th)]))
     return chosen, th, beta
 
 
@@ -244,7 +287,7 @@ def cv_predict(F, y, fold, effects: list, cand: Optional[Effect] = None):
             X = np.hstack([e.basis(F, t) for e, t in ch] + [cand.basis(F, th)])
         else:
             X = np.hstack([e.basis(F, t) for e, t in effects])
-            beta, *_ = np.linalg.lstsq(X[train], y[train], rcond=None)
+            beta = lstsq_bounded(X[train], y[train], *bounds_of(F, effects))
         pred[test] = X[test] @ beta
     return pred
 

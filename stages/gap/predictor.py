@@ -20,6 +20,7 @@ from stages.cutting.surface_error import read_profile
 from stages.gap.associate import predicted_at_points
 from stages.gap.diagnose import diagnose, where
 from stages.gap.fit import fold_fits, rms, shrink_where_acting
+from stages.gap.unexplained import SHRINK_CLAIM, unexplained
 from stages.geometry.cutter import Cutter
 
 COEFFS = ("ktc", "krc", "kac", "kte", "kre", "kae")
@@ -283,8 +284,37 @@ def diagnose_points(F: dict, sigma: Optional[float], floor_um: float = 0.0,
     with _one_blas_thread():
         res = diagnose(F, sigma, floor_um)
         res = how_far(F, res, predictor)
+    answer_unexplained(F, res, floor_um)
     res["where"] = where(F, F["residual_um"], res["sigma_um"], res["_blocks"])
     res["where_after"] = where(F, res["_after"], res["sigma_um"], res["_blocks"])
+    return res
+
+
+def answer_unexplained(F: dict, res: dict, floor_um: float = 0.0) -> dict:
+    """Structure the chosen effects leave (``stages.gap.unexplained``), scanned in the residual of
+    their fit on all points (a held-out residual would also hold the misses of local effects on
+    their own held-out blocks). When some is found and the chosen effects' held-out shrink is below
+    ``SHRINK_CLAIM`` (they soak up part of an error outside the catalogue), the answer is
+    "unexplained" and they are listed as possible, not claimed.
+
+    Parameters
+    ----------
+    F : dict
+    res : dict
+        Result of ``how_far`` (changed in place: ``unexplained``, ``possible``, and when the answer is
+        unexplained ``effect`` and ``effects``).
+    floor_um : float
+
+    Returns
+    -------
+    dict
+        ``res``.
+    """
+    r = F["residual_um"] - sum(res["_contrib"].values(), np.zeros(len(F["residual_um"])))
+    res["unexplained"] = unexplained(F, r, res["sigma_um"], floor_um)
+    res["possible"] = []
+    if res["unexplained"] is not None and (not res["effects"] or res["shrink"] < SHRINK_CLAIM):
+        res["possible"], res["effects"], res["effect"] = list(res["effects"]), [], "unexplained"
     return res
 
 

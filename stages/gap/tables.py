@@ -41,7 +41,8 @@ def gap_points_table(F, after) -> pa.Table:
 
 
 def gap_effects_table(res: dict) -> pa.Table:
-    """The ``gap_effects`` table: one row per catalogue effect of the first round's ranking.
+    """The ``gap_effects`` table: one row per catalogue effect of the first round's ranking (an
+    effect none of whose amplitudes the points observe is not ranked; ``observability`` says why).
 
     Parameters
     ----------
@@ -65,9 +66,11 @@ def gap_effects_table(res: dict) -> pa.Table:
         "rank": pa.array([r["rank"] for r in rows], pa.int32()),
         "gain_sigma2": [r["gain_sigma2"] for r in rows],
         "threshold_sigma2": [r["threshold_sigma2"] for r in rows],
-        "chosen": [r["effect"] in chosen for r in rows],
+        "chosen": [r["effect"] in res.get("effects", chosen) for r in rows],
         "hidden_up_to_um": [float(res.get("detection_limits", {}).get(r["effect"], {}).get("hidden_up_to_um", np.nan))
                             for r in rows],
         "ambiguous_with": pa.array([json.dumps(res.get("ambiguous_with", {}).get(r["effect"], [])) for r in rows],
                                    pa.string()),
+        "not_observable": pa.array([json.dumps({k: w for k, w in res.get("observability", {}).get(r["effect"], {}).items()
+                                                if w}) for r in rows], pa.string()),
     })

@@ -9,9 +9,9 @@ import math
 
 import numpy as np
 
-from stages.gap.effects import Effect
+from stages.gap.effects import CONTOUR_WIDTH_DEG, Effect, effect_bounds
 from stages.gap.collinearity import AMBIGUOUS_RHO, orthonormal_basis
-from stages.gap.fit import ALPHA, grid_subset, predict_effects, rms
+from stages.gap.fit import ALPHA, bounds_of, grid_subset, lstsq_bounded, predict_effects, rms
 from stages.gap.servo import envelope_geometry, refine_servo, servo_signature
 
 SE_STEP = 1e-3        # central-difference step of a nonlinear parameter: SE_STEP × max(|value|, 1)
@@ -40,10 +40,10 @@ def _free_parameters(F, e: Effect, th, b):
     nl = e.n_lin
     th = tuple(float(t) for t in th)
     keys = list(e.params(b, th))
-    # internal names (for the reasons of a non-identifiable parameter): amplitudes are the first
-    # reported keys, nonlinear values the rest; the runout response's e is not reported
-    names = [f"{e.name}.{keys[i] if i < len(keys) else 'lin' + str(i)}" for i in range(nl)]
-    rest = keys[nl:]
+    # internal names (for the reasons of a non-identifiable parameter): the fitted amplitudes, then
+    # the nonlinear values (the reported keys after all amplitudes); the runout response's e is not reported
+    names = [f"{e.name}.{k}" for k in e.linear_keys(th)]
+    rest = keys[(e.n_full or nl):]
     names += [f"{e.name}.{'response_at_e_um' if e.name == 'runout' else rest[j] if j < len(rest) else 'th' + str(j)}"
               for j in range(len(th))]
     return (names, np.concatenate([b, np.asarray(th, float)]), [True] * nl + [False] * len(th),
@@ -90,18 +90,27 @@ def _with_free(e: Effect, th, v: np.ndarray):
     return tuple(float(t) for t in v[e.n_lin:]), np.asarray(v[:e.n_lin], float)
 
 
-def _free_bounds(e: Effect, th, v0: np.ndarray):
-    """How far ``polish_fit`` may move an effect's nonlinear values from the selection's: within a
-    factor 2 (positive values: τ, λ, width, the runout response's e, the servo lag a with its sign),
-    the contour's centre q0 within ± its width."""
+def _free_bounds(F, e: Effect, th, v0: np.ndarray):
+    """Where ``polish_fit`` may move an effect's parameters: amplitudes within their physical limits
+    (``effect_bounds``); nonlinear values within a factor 2 of the selection's (positive values: τ,
+    λ, width, the runout response's e, the servo lag a with its sign), the contour's centre q0
+    within ± its width and within the measured contact angles (0–90°), its width within
+    ``CONTOUR_WIDTH_DEG``."""
     lo, hi = np.full(len(v0), -np.inf), np.full(len(v0), np.inf)
-    nonlin = range(len(v0)) if (e.name == "servo_corner" and len(th) == 2) else range(e.n_lin, len(v0))
+    servo = e.name == "servo_corner" and len(th) == 2
+    if not servo:
+        lo[:e.n_lin], hi[:e.n_lin] = effect_bounds(F, e, th)
+    nonlin = range(len(v0)) if servo else range(e.n_lin, len(v0))
     for i in nonlin:
-        if e.name == "tool_contour" and i == e.n_lin:                 # q0: any sign
+        if e.name == "tool_contour" and i == e.n_lin:
             w = abs(float(v0[i + 1]))
-            lo[i], hi[i] = v0[i] - w, v0[i] + w
+            q = F["q_deg"]
+            lo[i] = max(v0[i] - w, float(np.min(q)), 0.0)
+            hi[i] = min(v0[i] + w, float(np.max(q)), 90.0)
         else:
             lo[i], hi[i] = sorted((0.5 * v0[i], 2.0 * v0[i]))
+            if e.name == "tool_contour":
+                lo[i], hi[i] = max(lo[i], CONTOUR_WIDTH_DEG[0]), min(hi[i], CONTOUR_WIDTH_DEG[1])
     return lo, hi
 
 
@@ -132,7 +141,7 @@ def polish_fit(F, y: np.ndarray, chosen: list, beta: np.ndarray, max_iter: int =
         return chosen, beta
     chosen, beta = list(chosen), np.asarray(beta, float).copy()
     pred, J, _, values, _ = _linearise(F, chosen, beta)
-    bounds = [_free_bounds(e, th, v) for (e, th), v in zip(chosen, values)]
+    bounds = [_free_bounds(F, e, th, v) for (e, th), v in zip(chosen, values)]
     lo = np.concatenate([b[0] for b in bounds])
     hi = np.concatenate([b[1] for b in bounds])
     sizes = [len(v) for v in values]
@@ -160,8 +169,8 @@ def polish_fit(F, y: np.ndarray, chosen: list, beta: np.ndarray, max_iter: int =
             except np.linalg.LinAlgError:
                 lam *= 10
                 continue
-            vn = v + delta
-            if np.all(np.isfinite(vn)) and np.all(vn >= lo) and np.all(vn <= hi):
+            vn = np.clip(v + delta, lo, hi)              # the step projected into the bounds
+            if np.all(np.isfinite(vn)):
                 ch, bb = unpack(vn)
                 rn = y - predict_effects(F, ch, bb)
                 sn = float(rn @ rn)
@@ -287,7 +296,7 @@ def final_fit(F, y: np.ndarray, chosen: list):
     """
     n = len(y)
     X = np.hstack([e.basis(F, t) for e, t in chosen])
-    beta, *_ = np.linalg.lstsq(X, y, rcond=None)
+    beta = lstsq_bounded(X, y, *bounds_of(F, chosen))
     chosen, beta = refine_servo(F, y, np.ones(n, bool), chosen, beta)
     return polish_fit(F, y, chosen, beta)
 

@@ -98,6 +98,11 @@ class StockTop:
         np.maximum.at(top, pt[inside], z[inside])
         return top
 
+    def under(self, points: np.ndarray, margin: float) -> np.ndarray:
+        """Whether points (n, 3) lie more than ``margin`` under the stock's top."""
+        points = np.asarray(points, float).reshape(-1, 3)
+        return self.z(points[:, :2]) > points[:, 2] + margin
+
 
 class DesignSurface:
     """Distance of points to the nominal (design) model (no spatial-index extra needed).

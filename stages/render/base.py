@@ -298,11 +298,14 @@ class Renderer:
             i = j
         return images
 
-    def scan(self, view, stock: Scene, batches, n_ids: int, n_bins: int = 20, log: bool = False) -> ScanResult:
+    def scan(self, view, stock: Scene, batches, n_ids: int, n_bins: int = 20, log: bool = False,
+             before=()) -> ScanResult:
         """Ordered depth scan of one window: claims 7 and 8 in one render, and the cut log.
 
         The stock is drawn first (its top surface: the farthest stock face, so pixels off the
-        stock can never be cut), then the triangles of ``batches`` strictly in their order with
+        stock can never be cut), then the scenes of ``before`` (what earlier programs removed:
+        neither counted nor logged, and part of ``stock_depth``), then the triangles of
+        ``batches`` strictly in their order with
         the depth test LESS and depth writes, as the machine removes material pass after pass.
         A fragment passes where it is nearer than the stock and everything drawn before it: for
         a sweep that is where the pass cuts. Per id (attribute 0, ``>= 0``; negative ids are
@@ -326,14 +329,13 @@ class Renderer:
         try:
             pos, attrs, rect, _ = _to_atlas([view], stock, offs)
             self._scan_stock(pos, attrs, rect)
+            for sc in before:
+                for pos, attrs, rect in self._scan_parts(view, sc):
+                    self._scan_draw(pos, attrs, rect, counts, b_max, n_bins, log=False)
             stock01 = self._scan_depth(0, 0, h, w)
             for sc in batches:
-                for a in range(0, len(sc.tris), self.tri_budget):
-                    part = Scene(sc.tris[a:a + self.tri_budget], sc.attrs[a:a + self.tri_budget],
-                                 sc.bias[a:a + self.tri_budget],
-                                 np.zeros(min(self.tri_budget, len(sc.tris) - a), np.int64))
-                    pos, attrs, rect, _ = _to_atlas([view], part, offs)
-                    self._scan_draw(pos, attrs, rect, counts, b_max, n_bins)
+                for pos, attrs, rect in self._scan_parts(view, sc):
+                    self._scan_draw(pos, attrs, rect, counts, b_max, n_bins, log=log)
                 if log:
                     logs.append(self._scan_log())
         finally:
@@ -348,6 +350,14 @@ class Renderer:
             cut = CutLog.concat(logs)
             cut.depth = (cut.depth.astype(np.float64) + view.near_mm).astype(np.float32)
         return ScanResult(counts, b_max, final, stock_depth, cut)
+
+    def _scan_parts(self, view, sc: Scene):
+        """A scan's scene in draws of at most the triangle budget, in its order."""
+        for a in range(0, len(sc.tris), self.tri_budget):
+            part = Scene(sc.tris[a:a + self.tri_budget], sc.attrs[a:a + self.tri_budget], sc.bias[a:a + self.tri_budget],
+                         np.zeros(min(self.tri_budget, len(sc.tris) - a), np.int64))
+            pos, attrs, rect, _ = _to_atlas([view], part, [(0, 0, 0)])
+            yield pos, attrs, rect
 
     def max_atlas_px(self):
         return 8192

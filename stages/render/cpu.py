@@ -108,7 +108,7 @@ class CPURenderer(Renderer):
             np.maximum.at(z, pix, d)          # farthest stock face: the top of the material
         # pixels without stock keep depth 0: nothing is in front of it, nothing is cut there
 
-    def _scan_draw(self, pos, attrs, rect, counts, b_max, n_bins):
+    def _scan_draw(self, pos, attrs, rect, counts, b_max, n_bins, log=True):
         st = self._scan
         W = st["size"][1]
         frags = list(self._fragments(pos, rect, W))
@@ -134,7 +134,7 @@ class CPURenderer(Renderer):
             return
         a = attrs[tt, 0] * (1 - w1f - w2f)[:, None] + attrs[tt, 1] * w1f[:, None] + attrs[tt, 2] * w2f[:, None]
         ident = np.rint(a[:, 0]).astype(np.int64)
-        if st["log"] is not None:
+        if log and st["log"] is not None:
             st["log"].append(CutLog(pix.astype(np.int64), ident.astype(np.int32), a[:, N_ATTR].astype(np.float32)))
         cnt = ident >= 0
         b = np.clip((a[:, 1] * n_bins).astype(np.int64), 0, n_bins - 1)

@@ -200,10 +200,10 @@ class GLRenderer(Renderer):
         self._scan_prog["stock"].value = 1
         self._draw(self._scan_prog, pos, attrs, rect, self._scan["size"])
 
-    def _scan_draw(self, pos, attrs, rect, counts, b_max, n_bins):
+    def _scan_draw(self, pos, attrs, rect, counts, b_max, n_bins, log=True):
         self.ctx.depth_func = "<"
         self._scan_prog["stock"].value = 0
-        self._scan_prog["log_cap"].value = int(self._scan["cap"])
+        self._scan_prog["log_cap"].value = int(self._scan["cap"]) if log else 0
         self._draw(self._scan_prog, pos, attrs, rect, self._scan["size"])
 
     def _scan_log(self):

@@ -18,6 +18,7 @@ import numpy as np
 from stages.geometry.cutter import Cutter
 from stages.geometry.passes import PassGeometry, path_turning
 from stages.geometry.workpiece import StockTop
+from stages.surface.chain import ChainedStock
 from stages.surface.ordered import TileScan
 from stages.surface.steep import CutsByPixel, refine_steep
 
@@ -116,7 +117,7 @@ def before_cuts(ts: TileScan):
 
 
 def engagement(ts: TileScan, pg: PassGeometry, cutter: Cutter, pred: np.ndarray, tips: np.ndarray,
-               snap: np.ndarray, dz: float, n_phi: int = N_PHI, margin: float = 0.0, stock_top: StockTop | None = None):
+               snap: np.ndarray, dz: float, n_phi: int = N_PHI, margin: float = 0.0, stock_top: StockTop | ChainedStock | None = None):
     """Engagement grids of passes ``pred`` (ascending indices) at tips ``tips``.
 
     The material before a pass at a pixel is the depth its first cut by a pass from ``snap`` on
@@ -134,7 +135,8 @@ def engagement(ts: TileScan, pg: PassGeometry, cutter: Cutter, pred: np.ndarray,
     dz : level spacing, mm
     margin : material thinner than this over the envelope is not engaged (the scan's mesh
         tolerance: the render cannot tell it from a tie)
-    stock_top : the stock's top (:class:`stages.geometry.workpiece.StockTop`); with it the tool's steep
+    stock_top : the stock's top (:class:`stages.geometry.workpiece.StockTop`, or
+        :class:`stages.surface.chain.ChainedStock` after earlier programs); with it the tool's steep
         side is decided in closed form (:func:`stages.surface.steep.refine_steep`)
 
     Returns

@@ -1,6 +1,7 @@
 """One ordered scan of a tile from below (seed 000 claims 7 and 8 at once).
 
-The stock first, then every sweep that reaches into the window, in execution order, with the depth
+The stock first (less what earlier programs of the job cut: :mod:`stages.surface.chain`), then every
+sweep that reaches into the window, in execution order, with the depth
 test and depth writes, as the machine removes material (``Renderer.scan``). Per pass: the pixels
 it cut by position along the pass, the largest contact angle among them, and the pixels of the
 final surface it leaves; per pixel the final surface's owner, contact angle and azimuth; and the
@@ -21,6 +22,7 @@ from stages.geometry.passes import PassGeometry
 from stages.geometry.sweeps import ordered_sweep_scene
 from stages.geometry.workpiece import Workpiece, workpiece_scene
 from stages.render import CutLog, Image
+from stages.surface.chain import Earlier
 from stages.surface.tiles import PASSES_PER_DRAW, Tile
 
 N_BINS = 20              # bins of the position along a pass (prediction point, cut_filter)
@@ -39,7 +41,9 @@ class TileScan:
 
 
 def scan_tile(tile: Tile, pg: PassGeometry, wp: Workpiece, mesh: EnvelopeMesh, renderer,
-              log: bool = True) -> TileScan:
+              log: bool = True, earlier: Earlier | None = None) -> TileScan:
+    """The tile's scan: the stock, the sweeps of the ``earlier`` programs reaching into the window
+    (part of the stock the program meets: ``stock_z``), then the program's drawn passes."""
     n = len(pg.pass_id)
     tol = mesh.tol_mm
     drawn = tile.drawn
@@ -49,7 +53,9 @@ def scan_tile(tile: Tile, pg: PassGeometry, wp: Workpiece, mesh: EnvelopeMesh, r
             k = drawn[a:a + PASSES_PER_DRAW]
             yield ordered_sweep_scene(mesh, pg.p0[k], pg.p1[k], k, bias=tol)
 
-    res = renderer.scan(tile.view, workpiece_scene(wp, [tile.view], -2.0), batches(), n, N_BINS, log=log)
+    before = earlier.scenes(tile.lo, tile.hi) if earlier else ()
+    res = renderer.scan(tile.view, workpiece_scene(wp, [tile.view], -2.0), batches(), n, N_BINS, log=log,
+                        before=before)
     fin = res.final
     fin.depth = np.where(fin.id >= 0, fin.depth - tol, fin.depth)     # the bias, not the surface
     cut = res.log

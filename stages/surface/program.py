@@ -8,6 +8,7 @@ from stages.geometry.cutter import Cutter
 from stages.geometry.envelope import envelope_mesh
 from stages.geometry.passes import PassGeometry
 from stages.geometry.workpiece import Workpiece
+from stages.surface.chain import ChainedStock, Earlier
 from stages.surface.cut_passes import cut_columns
 from stages.surface.engagement import DZ_PER_RADIUS, N_PHI, TRAIL_TURN_DEG, engagement, snapshot_from
 from stages.surface.ordered import scan_tile, surface_stats
@@ -21,7 +22,8 @@ PRUNE_COLUMNS = ("max_contact_deg", "predict", "surface_px", "source")
 
 def scan_program(pg: PassGeometry, cutter: Cutter, wp: Workpiece, renderer, px_per_mm: float,
                  min_contact_deg: float = 45.0, design=None, strips: int = 1, strip: int | None = None,
-                 at: dict | None = None, steep_deg: float = STEEP_DEG) -> dict:
+                 at: dict | None = None, steep_deg: float = STEEP_DEG,
+                 earlier: list[tuple[PassGeometry, Cutter]] = ()) -> dict:
     """Scan the program's tiles (those of shard ``strip`` of ``strips``) and predict its passes.
 
     Parameters
@@ -32,6 +34,8 @@ def scan_program(pg: PassGeometry, cutter: Cutter, wp: Workpiece, renderer, px_p
     at : {pass index: tip (3,)} to predict exactly these passes at these points (the test of a
         kernel against a closed form), instead of the pruned cutting passes at their scan's points
     steep_deg : strip points steeper than this are tested against the sweeps (claim 6)
+    earlier : the passes and cutters of the programs machined before this one on the same stock, in
+        order: the program meets the stock less their sweeps
 
     Returns
     -------
@@ -40,11 +44,13 @@ def scan_program(pg: PassGeometry, cutter: Cutter, wp: Workpiece, renderer, px_p
     (one row per predicted pass), ``n_z`` and ``masks`` (their engagement grids, packed).
     """
     mesh = envelope_mesh(cutter, fine_tolerance(px_per_mm))
+    before = Earlier(list(earlier), wp, mesh.tol_mm) if len(earlier) else None
+    stock = ChainedStock(wp.top, before) if before else wp.top
     dz = cutter.radius_mm * DZ_PER_RADIUS
     out = {"passes": [], "cut_filter": [], "angle_prune": [], "predicted": [], "generating": [], "n_z": [],
            "masks": []}
     for tile in tiles(pg, cutter, wp, px_per_mm, strips=strips, strip=strip):
-        ts = scan_tile(tile, pg, wp, mesh, renderer)
+        ts = scan_tile(tile, pg, wp, mesh, renderer, earlier=before)
         px, sq = surface_stats(ts, len(pg.pass_id))
         cols = cut_columns(pg, ts.counts, ts.b_max, px, sq)
         k = tile.owned
@@ -64,7 +70,7 @@ def scan_program(pg: PassGeometry, cutter: Cutter, wp: Workpiece, renderer, px_p
         s_tip = pg.s0[pred] + np.linalg.norm(tips - pg.p0[pred], axis=1)
         gen = generating_points(ts, pg, cutter, pred, tips, mesh.tol_mm, design, steep_deg)
         snap = snapshot_from(pg, pred, s_tip, cutter.radius_mm, TRAIL_TURN_DEG)
-        n_z, masks = engagement(ts, pg, cutter, pred, tips, snap, dz, N_PHI, margin=mesh.tol_mm, stock_top=wp.top)
+        n_z, masks = engagement(ts, pg, cutter, pred, tips, snap, dz, N_PHI, margin=mesh.tol_mm, stock_top=stock)
         for key, v in (("passes", k), ("cut_filter", cf), ("angle_prune", ap), ("predicted", pred),
                        ("generating", gen), ("n_z", n_z), ("masks", masks)):
             out[key].append(v)

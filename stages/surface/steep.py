@@ -5,7 +5,8 @@ the side of the tool the grid rasterized from the cut log (:func:`stages.surface
 engagement`) is right to a pixel only; on a wall finished with a radial depth of one pixel that is
 the whole engaged arc. There, the cells within a few bins of a change along φ are decided by the
 geometry itself: the ring point is in the material before the pass when it lies under the stock's
-top (:class:`stages.geometry.workpiece.StockTop`, exact between pixels) and inside none of the
+top (:class:`stages.geometry.workpiece.StockTop`, exact between pixels; with the earlier programs'
+cuts, :class:`stages.surface.chain.ChainedStock`) and inside none of the
 sweeps that cut around it before the snapshot (:func:`stages.geometry.clearance.inside_sweep`),
 nor inside the tool at the chain's joint just before the snapshot.
 """
@@ -17,6 +18,7 @@ from stages.geometry.clearance import inside_sweep
 from stages.geometry.cutter import Cutter
 from stages.geometry.passes import PassGeometry
 from stages.geometry.workpiece import StockTop
+from stages.surface.chain import ChainedStock
 
 STEEP_DEG = 60.0      # levels where the tool's side is steeper than this are refined
 WALL_STEP_PX = 2.0    # four pixels of the stock's top that differ by more (in pixels' worth of height) hold a wall
@@ -52,7 +54,7 @@ class CutsByPixel:
 
 def refine_steep(who: np.ndarray, lev: np.ndarray, b: np.ndarray, n_phi: int, tips: np.ndarray, feed_rad: np.ndarray,
                  snap: np.ndarray, joint: np.ndarray, pg: PassGeometry, cutter: Cutter, dz: float, view,
-                 stock_z: np.ndarray, top: StockTop, cuts: CutsByPixel, margin: float):
+                 stock_z: np.ndarray, top: StockTop | ChainedStock, cuts: CutsByPixel, margin: float):
     """The engaged cells of m predictions' grids with those on the tool's steep side near a change
     along φ decided in closed form.
 
@@ -118,7 +120,7 @@ def refine_steep(who: np.ndarray, lev: np.ndarray, b: np.ndarray, n_phi: int, ti
     return keep // n_phi // n_lev, keep // n_phi % n_lev, keep % n_phi
 
 
-def _under_stock(P: np.ndarray, view, stock_z: np.ndarray, top: StockTop, margin: float) -> np.ndarray:
+def _under_stock(P: np.ndarray, view, stock_z: np.ndarray, top: StockTop | ChainedStock, margin: float) -> np.ndarray:
     """Whether points lie more than ``margin`` under the stock's top: between pixels on a smooth
     top, bilinear; where the four pixels around a point hold a wall of the stock and neither all
     lie above nor all below it, the stock's triangles decide."""
@@ -140,5 +142,5 @@ def _under_stock(P: np.ndarray, view, stock_z: np.ndarray, top: StockTop, margin
     out = np.where(smooth, bilinear > lim, (four > lim[:, None]).all(1))
     unsure = ~smooth & ~out & (four > lim[:, None]).any(1)
     if unsure.any():                                   # a wall of the stock between the pixels
-        out[unsure] = top.z(P[unsure, :2]) > lim[unsure]
+        out[unsure] = top.under(P[unsure], margin)
     return out

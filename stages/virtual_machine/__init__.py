@@ -23,7 +23,8 @@ from stages.virtual_machine.cutting import N_ROT, flute_offsets, station_forces
 from stages.virtual_machine.dynamics import fit_modes, machine_modes, modal_frf, simulate_deflection
 from stages.virtual_machine.effects import DEFAULTS, EFFECTS, machine_offsets, parse_effect, radius_loss
 from stages.virtual_machine.engagement import (K_NEAR, N_PHI, N_Z, SHANK_DZ_MM, STEP_SLACK, Stations, edge_grid,
-                                               engagement, inside_tool, make_stations)
+                                               engagement, make_stations)
+from stages.virtual_machine.removal import inside_tool
 from stages.virtual_machine.machine import VirtualMachine
 from stages.virtual_machine.probe import PASSAGES, PROBE_PASSES, grid_plan, machined_deviation, near_passes
 from stages.virtual_machine.stock import stock_height_fn

@@ -5,7 +5,7 @@ Micro-edges of the ball (:data:`N_Z` levels) and of the cylindrical side up to t
 a deflection step the mid point of each of its equal pieces of at most that length, so that the
 deflection's resolution along the path does not follow the program's blocks) are in the material
 when they lie below the stock (a height field, ``stock.py``) and outside the tool (ball and side)
-swept along every earlier pass (exact distances to the candidate passes from a plan-view KD-tree).
+swept along every earlier pass (exact tests, ``removal.py``).
 """
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ import numpy as np
 
 from stages import InputError
 from stages.geometry.paths import Path3
+from stages.virtual_machine.removal import SweptPasses
 
 # Grid fine enough that the simulated error has converged: a finishing crescent is only a few
 # tenths of a millimetre wide, and on a coarser grid (30 × 96 × 96) the error jumped by ±5 µm from
@@ -111,48 +112,14 @@ def edge_grid(radius_mm: float, stickout_mm: float):
             np.concatenate([ds, np.full(n_side, SHANK_DZ_MM)]))
 
 
-def inside_tool(x, a, ab, R, side):
-    """Is point x inside the tool swept along the ball-centre segment a → a + ab (per row)?
-
-    The tool is a ball of radius R on a cylinder of radius R reaching ``side`` above the centre.
-    Ball: distance to the segment < R. Side: for the part of the segment whose centre height lies
-    in [x_z − side, x_z], the plan-view distance to it < R.
-
-    Parameters
-    ----------
-    x, a, ab : (n, 3) float
-    R, side : float
-
-    Returns
-    -------
-    (n,) bool
-    """
-    ab2 = np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-30)
-    u = np.clip(np.einsum("ij,ij->i", x - a, ab) / ab2, 0, 1)
-    ball = np.linalg.norm(a + u[:, None] * ab - x, axis=1) < R - 1e-6
-    dz = ab[:, 2]
-    flat = np.abs(dz) < 1e-12
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s_a = np.where(flat, 0.0, (x[:, 2] - side - a[:, 2]) / dz)
-        s_b = np.where(flat, 1.0, (x[:, 2] - a[:, 2]) / dz)
-    lo = np.clip(np.minimum(s_a, s_b), 0, 1)
-    hi = np.clip(np.maximum(s_a, s_b), 0, 1)
-    level_ok = np.where(flat, (x[:, 2] >= a[:, 2]) & (x[:, 2] <= a[:, 2] + side),
-                        np.maximum(s_a, s_b) >= 0) & (np.minimum(s_a, s_b) <= 1)
-    abxy2 = np.maximum(np.einsum("ij,ij->i", ab[:, :2], ab[:, :2]), 1e-30)
-    w = np.clip(np.einsum("ij,ij->i", (x - a)[:, :2], ab[:, :2]) / abxy2, lo, hi)
-    cyl = level_ok & (np.linalg.norm(a[:, :2] + w[:, None] * ab[:, :2] - x[:, :2], axis=1) < R - 1e-6)
-    return ball | cyl
-
-
 def engagement(path: Path3, stations: Stations, stock_h, radius_mm: float, stickout_mm: float,
-               k_near: int = K_NEAR, max_points: int = 400_000) -> np.ndarray:
+               k_near: int = K_NEAR, max_points: int = 400_000, earlier=()) -> np.ndarray:
     """Engaged micro-edges at each station's mid point.
 
     A micro-edge is engaged when it lies below the stock's top and outside the tool (ball and
-    cylindrical side up to the stick-out) of every earlier pass. Only the levels below the
-    stock's top around a pass are tested (a finishing pass touches a thin band; a wall pass
-    its height).
+    cylindrical side up to the stick-out) of every earlier pass, of this program and of the
+    programs machined before it on the same stock. Only the levels below the stock's top around
+    a pass are tested (a finishing pass touches a thin band; a wall pass its height).
 
     Parameters
     ----------
@@ -166,6 +133,8 @@ def engagement(path: Path3, stations: Stations, stock_h, radius_mm: float, stick
         sub-segment in reach at once. The answer is the same: only the time changes.
     max_points : int
         Micro-edges tested at a time (bounds the memory).
+    earlier : sequence of (Path3, radius_mm, stickout_mm)
+        The ball-centre paths and tools of the programs machined before this one, in order.
 
     Returns
     -------
@@ -173,15 +142,12 @@ def engagement(path: Path3, stations: Stations, stock_h, radius_mm: float, stick
         Packed bits (``np.unpackbits(..., axis=2, count=N_PHI)``), position angles from the feed
         direction, counter-clockwise, levels of :func:`edge_grid`.
     """
-    from scipy.spatial import cKDTree
     p = path
     R = radius_mm
     zc, kappa, _ = edge_grid(radius_mm, stickout_mm)
     n_lev = len(zc)
     phi = (np.arange(N_PHI) + 0.5) * 2 * np.pi / N_PHI              # from the feed direction, CCW
     d = p.c1 - p.c0
-    P = len(d)
-    ln = p.length
     st = stations.pass_row
     mid = stations.mid
     S = len(mid)
@@ -192,16 +158,7 @@ def engagement(path: Path3, stations: Stations, stock_h, radius_mm: float, stick
     top = np.maximum(top, stock_h(mid[:, 0], mid[:, 1]))
     height = top - (mid[:, 2] - R)                                    # above the tip
     n_of = np.where(np.isfinite(height), np.searchsorted(zc, height, side="right"), 0).astype(np.int64)
-    # earlier passes as exact sub-segments of at most 2 mm, found by their plan-view midpoints
-    nsub = np.maximum(1, np.ceil(ln / 2.0).astype(np.int64))
-    sub_owner = np.repeat(np.arange(P), nsub)
-    k_sub = np.arange(nsub.sum()) - np.repeat(np.cumsum(nsub) - nsub, nsub)
-    sub_ab = d[sub_owner] / nsub[sub_owner, None]
-    sub_a = p.c0[sub_owner] + k_sub[:, None] * sub_ab
-    tree = cKDTree((sub_a + 0.5 * sub_ab)[:, :2])
-    tree3 = cKDTree(sub_a + 0.5 * sub_ab)
-    reach = R + 0.5 * float((ln / nsub).max()) + 1e-6
-    side = stickout_mm - R                                            # cylinder above the centre
+    swept = SweptPasses([*earlier, (p, R, stickout_mm)])
     eng = np.zeros((S, n_lev, (N_PHI + 7) // 8), np.uint8)
     rad = np.where(kappa < np.pi / 2 - 1e-12, R * np.sin(kappa), R)
     dzc = zc - R                                                      # relative to the centre
@@ -220,27 +177,10 @@ def engagement(path: Path3, stations: Stations, stock_h, radius_mm: float, stick
             owner = np.repeat(rows, N_PHI)
             inside = pts[:, 2] < stock_h(pts[:, 0], pts[:, 1]) - 1e-9
             removed = np.zeros(len(pts), bool)
-            cand_idx = np.flatnonzero(inside)
-            if cand_idx.size and k_near:
-                # most points below the stock top were cut by a row just before: test the
-                # nearest sub-segments in space first, and only the points none of those
-                # removed against every earlier sub-segment in reach (the same answer: a
-                # removal is a removal, and any sub-segment that removes a point is in reach)
-                kn = min(k_near, len(sub_a))
-                _, near = tree3.query(pts[cand_idx], k=kn)
-                pi = np.repeat(cand_idx, kn)
-                sj = near.reshape(-1)
-                ok = sub_owner[sj] < st[owner[pi]]
-                pi, sj = pi[ok], sj[ok]
-                removed[pi[inside_tool(pts[pi], sub_a[sj], sub_ab[sj], R, side)]] = True
-                cand_idx = cand_idx[~removed[cand_idx]]
-            if cand_idx.size:
-                sdm = tree.sparse_distance_matrix(cKDTree(pts[cand_idx, :2]), reach, output_type="ndarray")
-                sj, pi = sdm["i"].astype(np.int64), cand_idx[sdm["j"]]
-                ok = sub_owner[sj] < st[owner[pi]]          # earlier passes only
-                pi, sj = pi[ok], sj[ok]
-                removed[pi[inside_tool(pts[pi], sub_a[sj], sub_ab[sj], R, side)]] = True
+            cand = np.flatnonzero(inside)
+            removed[cand] = swept.removed(pts[cand], st[owner[cand]], k_near)
             E = (inside & ~removed).reshape(-1, N_PHI)
             eng[rows, lev] = np.packbits(E, axis=1)
         s0 = s1
     return eng
+

@@ -7,6 +7,7 @@ The machine reads parsed passes only; it shares the cutter type and the path geo
 from __future__ import annotations
 
 import math
+from functools import cached_property
 from typing import Optional
 
 import numpy as np
@@ -46,6 +47,9 @@ class VirtualMachine:
         See ``engagement.make_stations``.
     k_near : int
         See ``engagement.engagement`` (a speed-up only).
+    earlier : sequence of (passes, tool)
+        The programs machined before this one on the same stock, in order (their passes tables and
+        ``tool`` entries): the stock this program meets is what they left.
 
     Attributes
     ----------
@@ -55,13 +59,14 @@ class VirtualMachine:
     profile : (contact_deg, error_um) or None
     path : Path3
     stations : engagement.Stations
-    engaged : (S, levels, N_PHI // 8) uint8, packed engaged micro-edges of each station
+    engaged : (S, levels, N_PHI // 8) uint8, packed engaged micro-edges of each station (computed
+        on first use: a probe with a prescribed deflection, e.g. a rigid machine's, needs none)
     stock_h : callable z_top(x, y)
     """
 
     def __init__(self, passes: pa.Table, tool, material: dict, machine: dict, stock,
                  deflection_step_mm: Optional[float] = None, *, step_slack: float = STEP_SLACK,
-                 k_near: int = K_NEAR):
+                 k_near: int = K_NEAR, earlier=()):
         cutter = Cutter.from_params(tool)
         if cutter.kind != "ball":
             raise InputError(f"tool.type {cutter.kind!r}: the virtual machine models ball-nose tools only")
@@ -89,8 +94,17 @@ class VirtualMachine:
             raise InputError(f"{self.path.program_id}: no cutting moves to machine")
         self.stock_h = stock_height_fn(stock)
         self.stations = make_stations(self.path, deflection_step_mm, step_slack)
-        self.engaged = engagement(self.path, self.stations, self.stock_h, self.R, self.stickout, k_near)
+        self._k_near = k_near
+        self._earlier = []
+        for e_passes, e_tool in earlier:
+            c = Cutter.from_params(e_tool)
+            self._earlier += [(q, c.radius_mm, c.stickout_mm) for q in program_paths(e_passes, c.radius_mm, c.control_point)]
         self._defl_cache: dict = {}
+
+    @cached_property
+    def engaged(self) -> np.ndarray:
+        return engagement(self.path, self.stations, self.stock_h, self.R, self.stickout, self._k_near,
+                          earlier=self._earlier)
 
     def flute_offsets(self, e_um: float, phase_deg: float) -> np.ndarray:
         """Radial offset of each flute (mm) for a runout ``e_um`` at ``phase_deg``."""

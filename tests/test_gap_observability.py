@@ -1,0 +1,108 @@
+"""What a plan observes (issue 59): a drift along an axis no normal has is reported as not
+observable and held at nominal while the rest is recovered; a contour dent centred outside the
+measured contact angles is fitted inside them; bounded least squares against this file's own
+enumeration of active bounds; the plan's counts and warning against this file's own counts.
+"""
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from stages.gap.diagnose import diagnose
+from stages.gap.effects import catalogue
+from stages.gap.fit import fit_joint, solve_bounded
+from stages.gap.plans import plan_counts, plan_mask
+from tests.gap_helpers import associated, brute_force_features, fresh_rng, sample
+
+
+def test_drift_along_an_unseen_axis_is_not_observable_and_stays_nominal():
+    """Every normal's y part set to 0 (a plan of sections square to y): a drift A·n·(1 − e^(−t/τ))
+    by this file's formula, with a y part the points cannot see, noise σ 0.3–0.6 µm. The diagnosis
+    names the drift, reports ay as not observable with no standard error, keeps it at 0 (nominal),
+    and recovers ax, az and τ within 20 %."""
+    seed, rng = fresh_rng()
+    f = brute_force_features()
+    _, pts, _ = sample()
+    F = associated(np.zeros(len(pts)))
+    F["ny"] = np.zeros_like(F["ny"])
+    n = f["n"].copy()
+    n[:, 1] = 0.0
+    T = f["duration_s"]
+    A = np.array([rng.choice([-1, 1]) * rng.uniform(4, 8), rng.uniform(5, 15), -rng.uniform(6, 12)])
+    tau = rng.uniform(0.2, 0.8) * T
+    sigma = rng.uniform(0.3, 0.6)
+    y = (n @ A) * (1 - np.exp(-f["t"] / tau)) + rng.normal(0, sigma, len(pts))
+    F["measured_um"] = y
+    F["residual_um"] = y - F["predicted_um"]
+    res = diagnose(F)
+    case = f"seed {seed}: A {A}, tau {tau:.2f} s, sigma {sigma:.2f} -> {res['effects']} {res['params']}"
+    assert res["effects"][:1] == ["thermal_drift"], case
+    obs = res["observability"]["thermal_drift"]
+    assert obs["ay_um"] is not None and "not observable" in obs["ay_um"], case
+    assert obs["ax_um"] is None and obs["az_um"] is None, case
+    p, se = res["params"]["thermal_drift"], res["params_se"]["thermal_drift"]
+    assert p["ay_um"] == 0.0 and se["ay_um"] is None, case
+    assert abs(p["ax_um"] - A[0]) <= 0.2 * abs(A[0]), case
+    assert abs(p["az_um"] - A[2]) <= 0.2 * abs(A[2]), case
+    assert abs(p["tau_s"] - tau) <= 0.2 * tau, case
+
+
+def test_contour_centre_outside_the_measured_angles_is_fitted_inside_them():
+    """A dent a·exp(−½((q − q0)/w)²) by this file's formula centred 3–10° below the smallest
+    measured contact angle: its fitted centre lies within the measured range and its width within
+    3–20°."""
+    seed, rng = fresh_rng()
+    f = brute_force_features()
+    q = f["q"]
+    F = associated(np.zeros(len(q)))
+    q0, w = float(q.min()) - rng.uniform(3, 10), rng.uniform(5, 12)
+    y = rng.uniform(4, 10) * np.exp(-0.5 * ((q - q0) / w) ** 2) + rng.normal(0, 0.3, len(q))
+    cont = next(e for e in catalogue(F) if e.name == "tool_contour")
+    _, th, beta = fit_joint(F, y, np.ones(len(q), bool), [], cont)
+    case = f"seed {seed}: q0 {q0:.2f}, w {w:.2f} -> {th} {beta}"
+    assert q.min() - 1e-9 <= th[0] <= q.max() + 1e-9 and 3.0 <= th[1] <= 20.0, case
+
+
+def test_bounded_least_squares_equals_the_best_active_set():
+    """min βᵀGβ − 2gᵀβ in a box, against this file's enumeration: every choice of each parameter
+    free, at its lower or at its upper bound, the free ones solved, the best feasible one."""
+    seed, rng = fresh_rng()
+    for _ in range(20):
+        p = 3
+        X = rng.normal(size=(40, p)) @ np.diag(rng.uniform(0.1, 3, p))
+        y = rng.normal(size=40) * 3
+        G, g = X.T @ X, X.T @ y
+        lo, hi = -rng.uniform(0.1, 1, p), rng.uniform(0.1, 1, p)
+        best = None
+        for st in itertools.product((0, 1, 2), repeat=p):
+            b = np.where(np.array(st) == 1, lo, np.where(np.array(st) == 2, hi, 0.0))
+            fr = np.array(st) == 0
+            if fr.any():
+                b[fr] = np.linalg.solve(G[np.ix_(fr, fr)], g[fr] - G[np.ix_(fr, ~fr)] @ b[~fr])
+            if np.all(b >= lo - 1e-12) and np.all(b <= hi + 1e-12):
+                v = b @ G @ b - 2 * g @ b
+                if best is None or v < best[0]:
+                    best = (v, b)
+        got = solve_bounded(G, g, lo, hi)
+        assert got @ G @ got - 2 * g @ got == pytest.approx(best[0], rel=1e-7, abs=1e-9), f"seed {seed}"
+
+
+def test_plan_counts_and_a_warning_when_the_sloped_points_are_rejected():
+    """Normals drawn at contact angles 0–60° (60 within 5°); every point beyond 15° rejected: the counts per band
+    and direction are this file's own, and the warning names the band that lost its points."""
+    seed, rng = fresh_rng()
+    q = np.radians(np.r_[rng.uniform(0, 5, 60), rng.uniform(5, 60, 340)])
+    az = rng.uniform(0, 2 * np.pi, 400)
+    n = np.stack([np.sin(q) * np.cos(az), np.sin(q) * np.sin(az), np.cos(q)], 1)
+    rej = np.degrees(q) > 15
+    out = plan_counts(n[~rej], n[rej], ["off the part: 80 µm from every tool envelope"] * int(rej.sum()))
+    qd = np.degrees(q)
+    for b in out["bands"]:
+        inb = (qd >= b["band_deg"][0]) & (qd < b["band_deg"][1])
+        assert b["measured"] == int(np.sum(inb & ~rej)) and b["rejected"] == int(np.sum(inb & rej)), f"seed {seed}"
+    assert sum(d["measured"] + d["rejected"] for d in out["directions"]) == 400
+    assert any("15–60°" in w and "off the part" in w for w in out["warnings"]), (seed, out["warnings"])
+    assert plan_counts(n[~rej], n[:0])["warnings"] == []
+    assert plan_mask(np.c_[rng.uniform(0, 5, (400, 2)), np.zeros(400)], n, "floors").sum() == int(np.sum(qd <= 5))
