@@ -57,7 +57,8 @@ the angle of the contact normal from +Z.
 - `10_steep_t1.nc`: levels every {dz1} mm from Z{z1a:g} down to Z{z1b:g} ({allow} mm + 0.05 over the pocket floor:
   the floor is the raster's), kept where the slope is {steep:.0f}° or more: scallops {w1v:.0f} µm on a vertical
   wall, {w1s:.0f} µm at {steep:.0f}°. Climb (the material on the tool's right, M3), one way: a 1 mm lead move
-  square to the wall in the air at each end of a level's stretch, a retract between. F{f1:g}, S{s1}.
+  square to the wall in the air at each end of a level's stretch, a retract between; level by level, top
+  first (a lower level never meets a higher level's stock on its flutes). F{f1:g}, S{s1}.
 - `20_shallow_t1.nc`: rows along X every {st1} mm (scallop {c1:.0f} µm on a flat) kept where the slope is at
   most {steep:.0f}°, and {ov} mm of path on beyond (the overlap with the contours); a row runs into the next
   where the link is free. F{f1:g}, S{s1}.
@@ -98,11 +99,9 @@ points within 1 mm of the stock's cut sides left out), to the stock mesh, by bru
 |---|---|---|---|---|---|
 {allowance_rows}
 
-The pipeline's own figure (`pipeline run workflows/mould.yaml`, `run.json` `allowance`, table `allowance`)
-measures, from each predicted pass's generating point, the farthest engaged point of the tool along the
-normal: its medians agree with the above within 10 µm, its tails are larger (beside a wall the tool's
-side meets the wall's stock too): 10_steep_t1 0.199 / 0.307 / 5.38 mm (median / 95 % / max), 20_shallow_t1
-0.206 / 1.56 / 11.1 mm, 30_pencil_t2 0.197 / 1.60 / 2.64 mm. The largest values above are at the
+The pipeline measures the same per predicted pass (`run.json` `allowance`, table `allowance`): from
+the pass's generating point, the farthest engaged point of the tool along the normal; its tails are
+longer (beside a wall the tool's side meets the wall's stock too). The largest values above are at the
 model's corners tighter than the semi-finishing Ø4's 2.2 mm (it leaves them thicker) and on the
 relief's sharp top edge, where the contact normal runs along the parting face's 0.2 mm.
 

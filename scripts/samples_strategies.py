@@ -4,6 +4,8 @@ contours (waterline stretches, top level first, climb).
 """
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 
 from samples_moves import LEAD_MM, Toolpath
@@ -104,9 +106,10 @@ def _start_near(s: np.ndarray, p: np.ndarray, zigzag: bool):
     return s, float(np.linalg.norm(s[0] - p))
 
 
-def level_chains(levels: list[list[np.ndarray]], join_mm: float, zigzag: bool) -> list[list[np.ndarray]]:
+def level_chains(levels: list[list[np.ndarray]], join_mm: float, zigzag: bool) -> list[tuple[int, list[np.ndarray]]]:
     """Stretches of consecutive levels that start within ``join_mm`` of where the one above ended,
-    as chains (down a wall, round a corner); ``zigzag`` lets an open stretch run backwards to do so."""
+    as chains (down a wall, round a corner); ``zigzag`` lets an open stretch run backwards to do so.
+    Returns the chains with the level each begins on."""
     left = [list(lv) for lv in levels]
     chains = []
     for k in range(len(left)):
@@ -122,18 +125,23 @@ def level_chains(levels: list[list[np.ndarray]], join_mm: float, zigzag: bool) -
                     break
                 left[j].pop(best[1])
                 chain.append(best[2])
-            chains.append(chain)
+            chains.append((k, chain))
     return chains
 
 
 def write_levels(tp: Toolpath, levels: list[list[np.ndarray]], step_down: float, zigzag: bool = False) -> dict:
-    """Z-level contours (or offset rings): per level (top first) its stretches, chained level to level
+    """Z-level contours (or offset rings): level by level (top first) its stretches, chained level to level
     where the next starts within 2 mm of the last end (a closed loop at its nearest vertex; with
     ``zigzag`` an open stretch may run backwards) and joined there by a straight feed move where
     free; chains begin and end on straight lead moves (at the plunge feed) square to the stretch in
     the air and are reached by a retract. Returns counts for the console."""
-    chains = level_chains([lv for lv in levels if lv], 2.0 + step_down, zigzag)
-    chains = nearest_first(chains, lambda c: c[0][0], lambda c: c[-1][-1], tp.pos)
+    # level by level, nearest first within a level: a chain never runs under stock a higher level
+    # still has to remove (a wall's whole height on the flutes)
+    chains = []
+    for k, group in itertools.groupby(level_chains([lv for lv in levels if lv], 2.0 + step_down, zigzag),
+                                      key=lambda kc: kc[0]):
+        chains += nearest_first([c for _, c in group], lambda c: c[0][0], lambda c: c[-1][-1],
+                                chains[-1][-1][-1] if chains else tp.pos)
     n_closed = n_open = 0
     for chain in chains:
         for i, s in enumerate(chain):

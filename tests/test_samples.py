@@ -145,6 +145,14 @@ def test_the_contours_climb():
     assert len(left) > 50 and (left > 0).mean() > 0.95
 
 
+def test_the_contours_go_down_level_by_level():
+    """Z-level finishing runs top level first: a lower level's flutes never meet the stock of a level
+    above that has not been cut yet (that would load the tool over the wall's whole height)."""
+    z = [m["end"][2] for m in read_nc(SAMPLES / "nc" / "10_steep_t1.nc")
+         if m["g"] == 1 and m["feed"] == 3000 and np.isfinite(m["start"]).all()]
+    assert len(set(np.round(z, 3))) > 40 and (np.diff(z) <= 1e-9).all()
+
+
 def test_the_stock_is_the_allowance_over_the_contact_points(semi, nominal, contacts):
     """Along the normal from each contact point to the stock mesh (brute-force ray crossings): at least
     the allowance (less the mesh's own tolerance) everywhere; away from the model's sharp edges and the
