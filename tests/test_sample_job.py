@@ -66,7 +66,9 @@ def test_readme_queries_on_the_sample_job(job):
     expect = errors.reindex(errors.err_um.abs().sort_values(ascending=False).index).head(10)
     np.testing.assert_allclose(np.sort(np.abs(top.err_um)), np.sort(np.abs(expect.err_um.round(2))), atol=0.006)
     lines = passes.set_index(["program_id", "pass_id"]).line_no
-    assert set(top.line_no) == {lines[(r.program_id, r.pass_id)] for r in expect.itertuples()}
+    # their lines: those of the passes at or above the tenth |err| (equal errors tie: repeated rows)
+    tied = errors[errors.err_um.abs() >= expect.err_um.abs().min() - 0.005]
+    assert set(top.line_no) <= {lines[(r.program_id, r.pass_id)] for r in tied.itertuples()}
     # per program: every pass, the predicted ones, their RMS
     per_program = per_program.set_index("program_id")
     for pid, g in passes.groupby("program_id"):
