@@ -46,8 +46,9 @@ def timed(seconds: dict):
 
 
 def sample_case(name: str):
-    wf, base = load_workflow(os.path.join(ROOT, "workflows", "mould.yaml"))
-    path = os.path.join(ROOT, "data_samples", "nc", f"{name}.nc")
+    # the raster along X over everything on the heavy-rest stock (data_samples/rest_overload/)
+    wf, base = load_workflow(os.path.join(ROOT, "workflows", "rest_overload.yaml"))
+    path = os.path.join(ROOT, "data_samples", "rest_overload", "nc", f"{name}.nc")
     p = parse.run({"program_file": {"path": path, "sha256": "", "program_id": name}}, wf.params(parse.PARAMS, None, base))
     tool = p["programs"].to_pylist()[0]["tool"]
     passes = split.run({"programs": p["programs"], "blocks": p["blocks"]}, wf.params(split.PARAMS, tool, base))["passes"]

@@ -1,8 +1,8 @@
 """Closed loop of the whole pipeline on the sample mould, checked on the gap issue's virtual machine
 (issue 5 must-show on the samples; a bench, not a CI test: minutes per band on llvmpipe).
 
-For each probe window on ``data_samples/nc/mould_finish_t1.nc`` (the raster rows crossing it, each
-cut to the moves within ``MARGIN_MM`` of it, as a program of their own: the sample's header, then
+For each probe window on ``data_samples/rest_overload/nc/mould_finish_t1.nc`` (the raster rows crossing
+it, each cut to the moves within ``MARGIN_MM`` of it, as a program of their own: the sample's header, then
 per row piece a retract, rapid, plunge and the row's lines verbatim; the windows lie on the pocket
 walls and the boss, where the error is):
 
@@ -24,8 +24,8 @@ walls and the boss, where the error is):
         cache are machined side by side, one process a core)
 
 ``--program`` and ``--workflow`` run another program with another workflow (default the finishing
-program with ``workflows/mould.yaml``; e.g. ``--whole --program data_samples/nc/mould_contour_t1.nc``,
-or ``--whole --program data_samples/gap/gap_t1.nc --workflow workflows/gap.yaml``).
+program with ``workflows/rest_overload.yaml``, its ``feed`` section left out: the path correction alone;
+e.g. ``--whole --program data_samples/rest_overload/nc/mould_contour_t1.nc``, or ``--whole --program data_samples/gap/gap_t1.nc --workflow workflows/gap.yaml``).
 ``--rounds`` lists the round counts to run (default 1 and 3). The virtual machine cuts every program
 as passes of the workflow's chord tolerance, pass length and merge length only (:data:`VM_SPLIT`:
 the end and corner pieces of ``--set split.…`` change what the pipeline predicts, not the machine).
@@ -60,8 +60,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-PROGRAM = ROOT / "data_samples/nc/mould_finish_t1.nc"
-WORKFLOW = ROOT / "workflows/mould.yaml"
+PROGRAM = ROOT / "data_samples/rest_overload/nc/mould_finish_t1.nc"
+WORKFLOW = ROOT / "workflows/rest_overload.yaml"
 WINDOWS = ((22.0, 32.0, 41.0, 45.0), (68.0, 78.0, 41.0, 45.0), (54.0, 62.0, 53.0, 57.0))
 MARGIN_MM = 6.0          # passes machined on the VM: within this of the window (they shape its surface)
 
@@ -106,7 +106,8 @@ def workflow(root: Path, max_iter: int, prune_deg=None, max_move_um=None, correc
         wf["tool"]["profile"] = str(ROOT / wf["tool"]["profile"])
     if wf["machine"]["frf"].get("table"):
         wf["machine"]["frf"]["table"] = str(ROOT / wf["machine"]["frf"]["table"])
-    for k in ("until", "measurements"):
+    # the path correction alone: the programs' own feeds (no feed schedule)
+    for k in ("until", "measurements", "feed"):
         wf.pop(k, None)
     # one output (cache) for both runs: the three-round run takes round 1 from the cache
     wf.update({"name": "band", "programs": "nc/*.nc", "output": "out"})

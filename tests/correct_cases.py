@@ -8,7 +8,7 @@ import pyarrow as pa
 from stages.nc.moves import split_blocks
 from stages.nc.reader import parse_program
 
-SAMPLES = ("data_samples/nc/mould_contour_t1.nc", "data_samples/nc/mould_finish_t1.nc")
+SAMPLES = ("data_samples/rest_overload/nc/mould_contour_t1.nc", "data_samples/rest_overload/nc/mould_finish_t1.nc")
 
 
 SPLIT = {"split": {"chord_tol_mm": 0.001, "max_pass_mm": 5.0, "merge_max_mm": 0.5},

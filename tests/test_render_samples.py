@@ -17,6 +17,7 @@ from stages.render import make_renderer
 from stages.surface.program import scan_program
 
 SAMPLES = Path(__file__).resolve().parents[1] / "data_samples"
+REST = SAMPLES / "rest_overload"         # the raster along X over everything, on the heavy-rest stock
 TOOL = dict(type="ball", diameter_mm=10, flutes=2, helix_deg=30, stickout_mm=40)
 SPLIT = {"split": {"chord_tol_mm": 0.001, "max_pass_mm": 5.0, "merge_max_mm": 0.5},
          "machine": {"rapid_mm_min": 30000}, "tool": TOOL}
@@ -31,10 +32,10 @@ def _gl():
 
 @pytest.fixture(scope="module")
 def sample():
-    path = SAMPLES / "nc" / "mould_finish_t1.nc"
+    path = REST / "nc" / "mould_finish_t1.nc"
     p = parse.run({"program_file": {"path": str(path), "program_id": "finish", "sha256": ""}}, {})
     passes = split.run(p, SPLIT)["passes"]
-    return passes, load_workpiece(str(SAMPLES / "models" / "semi.stl"))
+    return passes, load_workpiece(str(REST / "semi.stl"))
 
 
 def _scan(passes, wp, renderer, design=None, at=None):
@@ -83,7 +84,7 @@ def _nearest_face(mesh, points):
 
 def test_generating_point_on_the_design_surface_in_a_pocket_corner(sample):
     """Passes down the pocket walls next to a corner ride over the rest material the
-    semi-finishing left on the wall parallel to X (data_samples/README.md). Without the design
+    semi-finishing left on the wall parallel to X (data_samples/README.md, rest_overload). Without the design
     model their generating points lay on that rest material, 1.6-1.7 mm off the model and 45° off
     the wall each pass finishes (the virtual machine's probe points on those walls face ±X); with
     it, they lie on the model, along its face normal there."""

@@ -15,6 +15,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import trimesh
+import yaml
 
 from tests.test_engine import readme_queries
 
@@ -41,7 +42,8 @@ def test_every_stage_runs_and_every_output_is_written(job):
     assert not summary["failures"] and summary["report_error"] is None
     programs = pd.read_parquet(out / "tables" / "programs")
     assert set(programs.status) == {"ok"} and all(not Path(p).is_absolute() for p in programs.path)
-    assert sorted(programs.path) == sorted(f"data_samples/nc/{p.name}" for p in (ROOT / "data_samples" / "nc").glob("*.nc"))
+    wf = yaml.safe_load((ROOT / "workflows" / "mould.yaml").read_text())
+    assert sorted(programs.path) == sorted(str(p.relative_to(ROOT)) for p in ROOT.glob(wf["programs"]))
     # the correction written is the one predicted to deviate least, and less than the program as written
     for pid, k in summary["kept"].items():
         devs = [r["rms_dev_um"] for r in summary["rounds"][pid]]
@@ -64,7 +66,9 @@ def test_readme_queries_on_the_sample_job(job):
     expect = errors.reindex(errors.err_um.abs().sort_values(ascending=False).index).head(10)
     np.testing.assert_allclose(np.sort(np.abs(top.err_um)), np.sort(np.abs(expect.err_um.round(2))), atol=0.006)
     lines = passes.set_index(["program_id", "pass_id"]).line_no
-    assert set(top.line_no) == {lines[(r.program_id, r.pass_id)] for r in expect.itertuples()}
+    # their lines: those of the passes at or above the tenth |err| (equal errors tie: repeated rows)
+    tied = errors[errors.err_um.abs() >= expect.err_um.abs().min() - 0.005]
+    assert set(top.line_no) <= {lines[(r.program_id, r.pass_id)] for r in tied.itertuples()}
     # per program: every pass, the predicted ones, their RMS
     per_program = per_program.set_index("program_id")
     for pid, g in passes.groupby("program_id"):
