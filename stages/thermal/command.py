@@ -25,6 +25,9 @@ def load_model(path) -> DriftModel:
     path = Path(path)
     try:
         d = yaml.safe_load(path.read_text())
+        if not isinstance(d, dict):
+            raise InputError(f"{path}: not a drift model written by `pipeline thermal-fit` (a mapping of keys "
+                             f"kind, time_constants_s, axes, ...; got {type(d).__name__})")
         return DriftModel.from_dict(d)
     except FileNotFoundError:
         raise InputError(f"{path}: no such file") from None
