@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 import pandas as pd
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
@@ -165,3 +166,55 @@ def test_a_bad_drift_model_fails_the_programs_naming_the_file(tmp_path):
     path.write_text(yaml.safe_dump(wf))
     r = CliRunner().invoke(main, ["run", str(path), "--workers", "1", "-q"])
     assert r.exit_code != 0 and "drift.start" in r.output, r.output
+
+
+def _passes(t_edges, rpm, program_id="p"):
+    """A passes table of straight 1 mm moves in X, one block each, timed at ``t_edges``."""
+    import pyarrow as pa
+    n = len(rpm)
+    x = np.arange(n + 1, dtype=float)
+    return pa.table({"program_id": [program_id] * n, "pass_id": np.arange(n, dtype=np.int32),
+                     "block_no": np.arange(1, n + 1, dtype=np.int32), "block_end": np.arange(1, n + 1, dtype=np.int32),
+                     "x0_mm": x[:-1], "y0_mm": np.zeros(n), "z0_mm": np.zeros(n),
+                     "x1_mm": x[1:], "y1_mm": np.zeros(n), "z1_mm": np.zeros(n),
+                     "spindle_rpm": np.asarray(rpm, float),
+                     "t_start_s": np.asarray(t_edges[:-1], float), "t_end_s": np.asarray(t_edges[1:], float)})
+
+
+def test_a_heat_input_model_follows_the_spindle_of_the_whole_job():
+    from stages import InputError
+    from stages.thermal import DriftModel
+    from stages.thermal.compensate import drift_compensation
+    tau, a = 20.0, 10.0
+    model = DriftModel(np.array([tau]), {"x": np.array([0.0, a]), "y": np.zeros(2), "z": np.zeros(2)},
+                       heat_column="spindle_rpm", heat_reference=10000.0)
+    # earlier program: 10 s at full speed; this one: 10 s at half speed, then 20 s stopped
+    earlier = [(_passes([0.0, 10.0], [10000.0], "e"), {})]
+    passes = _passes([0.0, 10.0, 30.0], [5000.0, 0.0])
+    end = np.array([[1.0, 0, 0], [2.0, 0, 0]])
+    comp = drift_compensation(model, np.array([1, 2]), end, passes, earlier)
+    # first-order lag by hand: r(10) = 1 − e^(−1/2); r(20) = 0.5 + (r(10) − 0.5)e^(−1/2); r(40) = r(20)e^(−1)
+    r10 = 1 - np.exp(-0.5)
+    r20 = 0.5 + (r10 - 0.5) * np.exp(-0.5)
+    np.testing.assert_allclose(comp[:, 0], -a * np.array([r20, r20 * np.exp(-1.0)]), rtol=1e-12)
+    no_speed = passes.drop_columns(["spindle_rpm"])
+    with pytest.raises(InputError, match="m.yaml: the model's heat input is spindle_rpm"):
+        drift_compensation(model, np.array([1, 2]), end, no_speed, None, where="m.yaml")
+    model.temperatures = ("temp_spindle",)
+    with pytest.raises(InputError, match="m.yaml: the model needs temperature readings"):
+        drift_compensation(model, np.array([1, 2]), end, passes, None, where="m.yaml")
+
+
+def test_a_vertex_inside_a_merged_pass_is_reached_at_its_fraction_of_the_pass():
+    from stages.thermal.compensate import vertex_times
+    p = _passes([0.0, 4.0, 6.0], [0.0, 0.0])
+    p = p.set_column(p.schema.get_field_index("block_no"), "block_no", pa_array([1, 3]))
+    p = p.set_column(p.schema.get_field_index("block_end"), "block_end", pa_array([2, 3]))
+    # blocks 1 and 2 merged into pass 0 (x 0 → 1, t 0 → 4): block 1 ends at x = 0.25
+    t = vertex_times(np.array([1, 2, 3]), np.array([[0.25, 0, 0], [1.0, 0, 0], [2.0, 0, 0]]), p)
+    np.testing.assert_allclose(t, [1.0, 4.0, 6.0])
+
+
+def pa_array(v):
+    import pyarrow as pa
+    return pa.array(np.asarray(v, np.int32))
