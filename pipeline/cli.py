@@ -103,6 +103,39 @@ def tool_profile(images, um_per_px, diameter_mm, tool_type, corner_radius_mm, cu
     click.echo(f"{res.get('n_images')} images; eccentricity {ecc} um; wrote {out} (+ .json, .png)")
 
 
+@main.command("thermal-fit")
+@click.option("--measurements", type=click.Path(dir_okay=False),
+              help="On-machine drift CSV: time_s, dx_um, dy_um, dz_um [, spindle_rpm, x_mm, y_mm, z_mm, temp_*].")
+@click.option("--model", "model_path", type=click.Path(dir_okay=False),
+              help="An existing drift model (instead of --measurements): only --predict.")
+@click.option("--out", "out", type=click.Path(dir_okay=False), help="Drift model to write (+ .json, .png).")
+@click.option("--sources", type=click.IntRange(1, 4), default=2, show_default=True, help="Heat sources (time constants).")
+@click.option("--predict", "times", type=click.Path(dir_okay=False),
+              help="CSV of times (time_s and the model's heat/position columns) to predict the drift at.")
+@click.option("--predicted", type=click.Path(dir_okay=False), help="Where --predict writes time_s, dx_um, dy_um, dz_um.")
+def thermal_fit(measurements, model_path, out, sources, times, predicted):
+    """Fit a thermal drift model per axis to on-machine reference measurements (seed 003)."""
+    from stages.thermal import load_model, predict_file, thermal_fit_command
+    if bool(measurements) == bool(model_path) or (measurements and not out) or bool(times) != bool(predicted):
+        raise click.UsageError("give --measurements with --out, or --model; --predict goes with --predicted")
+    try:
+        if measurements:
+            rep = thermal_fit_command(measurements, out, sources)
+            taus = ", ".join(f"{t['value'] / 60:.1f} ± {t['se'] / 60:.1f} min" for t in rep["time_constants_s"])
+            rms = ", ".join(f"{a} {v:.2f}" for a, v in rep["rms_um"].items())
+            click.echo(f"{rep['points']} measurements; time constants {taus}; residual RMS um: {rms}; "
+                       f"wrote {out} (+ .json, .png)")
+            model = load_model(out)
+        else:
+            model = load_model(model_path)
+        if times:
+            n = predict_file(model, times, predicted)
+            click.echo(f"predicted the drift at {n} times -> {predicted}")
+    except InputError as e:
+        click.echo(f"error: {e}", err=True)
+        sys.exit(2)
+
+
 @main.command("tool-wear")
 @click.option("--before", "before", required=True, type=click.Path(dir_okay=False),
               help="Tool-profile CSV measured before the job (contact_deg, error_um).")

@@ -164,6 +164,15 @@ class Feed(_Strict):
         return self
 
 
+class Drift(_Strict):
+    """Thermal drift compensation (stage ``correct``): vertices move against the drift a fitted model predicts."""
+
+    model: str = Field(description="drift model written by `pipeline thermal-fit` (drift.yaml)")
+    start_s: float = Field(0.0, ge=0, description="time on the model's clock (since the machine's cold start) "
+                           "at which the job's first program starts, s; later programs follow the earlier "
+                           "ones' machining times")
+
+
 class Warnings(_Strict):
     """Which passes are listed as ones a correction cannot help (table ``warnings``)."""
 
@@ -215,6 +224,7 @@ class Workflow(_Strict):
     split: Split = Field(Split(), description="how NC motion becomes passes")
     correct: Correct = Field(Correct(), description="corrected programs")
     feed: Optional[Feed] = Field(None, description="scheduled feeds (off without this section)")
+    drift: Optional[Drift] = Field(None, description="thermal drift compensation (off without this section)")
     warnings: Warnings = Field(Warnings(), description="passes a correction cannot help")
     measurements: Union[str, Measurements, None] = Field(None, description="measured points for the gap diagnosis "
                                                          "(a file, or a mapping with `file`)")
@@ -273,7 +283,8 @@ class Workflow(_Strict):
         return out
 
 
-FILE_KEYS = ("profile", "table")     # keys whose string values name files (relative to the project)
+# keys whose string values name files (relative to the project); their content enters cache keys
+FILE_KEYS = ("profile", "table", "model")
 
 
 def _absolute_files(val, base: Path):

@@ -32,4 +32,11 @@ SCHEMA = pa.schema([
     pa.field('nx', pa.float64()),             # vertex normal (unit sum of the predicted passes' normals),
     pa.field('ny', pa.float64()),             # NaN where no predicted pass meets the vertex
     pa.field('nz', pa.float64()),
+    # thermal drift compensation (workflow section drift): minus the drift predicted when the tool
+    # reaches the vertex, µm; 0 without it. x/y/z_new_mm stay the error correction (the rounds
+    # predict on the path the tool follows in the workpiece frame, where drift and compensation
+    # cancel); the writers write x/y/z_new_mm + drift (stages.thermal.compensate.with_drift)
+    pa.field('drift_x_um', pa.float64()),
+    pa.field('drift_y_um', pa.float64()),
+    pa.field('drift_z_um', pa.float64()),
 ])

@@ -7,6 +7,12 @@ to the path they were made for, so every round applies its move to the ORIGINAL 
 (``errors@first``). ``generating@first`` (the original program's surfaces) and the tool drive the
 gouge limit. The stage graph repeats the chain from ``correct_blocks`` to here until
 :func:`converged`.
+
+With a ``drift:`` section every vertex also gets the thermal drift compensation
+(:mod:`stages.thermal.compensate`: the drift the model predicts when the tool reaches it, the
+program starting after the job's earlier programs, ``passes@earlier``) in ``drift_*_um``, apart from
+``x_new_mm``…: the next round predicts on the path in the workpiece frame, where the drift and its
+compensation cancel; the writers add it.
 """
 from __future__ import annotations
 
@@ -18,12 +24,14 @@ from stages.geometry.cutter import Cutter
 from stages.tables import col, pick_entry, program_tool_number, xyz
 
 NAME = "correct"
-VERSION = "16"
-INPUTS = ("blocks@first", "passes@first", "passes", "errors", "errors@first", "generating@first", "corrected@previous")
+VERSION = "17"
+INPUTS = ("blocks@first", "passes@first", "passes", "errors", "errors@first", "generating@first", "corrected@previous",
+          "passes@earlier")
 OUTPUTS = ("corrected",)
 # tol_um and max_iter steer the rounds and ln_normals / comp_table the writer: changing them re-uses
 # every cached round
-PARAMS = ("correct.max_move_um", "correct.relax", "correct.gouge_limit", "correct.normal_tol_deg", "tool")
+# drift.model is a file: its content enters the cache key (pipeline.config.FILE_KEYS)
+PARAMS = ("correct.max_move_um", "correct.relax", "correct.gouge_limit", "correct.normal_tol_deg", "tool", "drift")
 
 
 def run(inputs: dict, params: dict) -> dict[str, pa.Table]:
@@ -34,10 +42,26 @@ def run(inputs: dict, params: dict) -> dict[str, pa.Table]:
     cutter = None
     if opts.get("gouge_limit", True) and params.get("tool") is not None:
         cutter = Cutter.from_params(pick_entry(params["tool"], program_tool_number(passes), "tool"))
-    return {"corrected": correct_once(inputs["blocks@first"], passes, errors, params,
-                                      previous=inputs.get("corrected@previous"),
-                                      relax=float(opts.get("relax", 1.0)),
-                                      generating=inputs.get("generating@first"), tool_shape=cutter)}
+    corrected = correct_once(inputs["blocks@first"], passes, errors, params,
+                             previous=inputs.get("corrected@previous"), relax=float(opts.get("relax", 1.0)),
+                             generating=inputs.get("generating@first"), tool_shape=cutter)
+    if params.get("drift") and corrected.num_rows:
+        corrected = _with_drift_columns(corrected, passes, inputs.get("passes@earlier"), params["drift"])
+    return {"corrected": corrected}
+
+
+def _with_drift_columns(corrected: pa.Table, passes: pa.Table, earlier, drift: dict) -> pa.Table:
+    """``corrected`` with the drift compensation of its vertices (at their programmed positions)."""
+    from stages.thermal import load_model
+    from stages.thermal.compensate import DRIFT_COLUMNS, drift_compensation
+    path = drift["model"]
+    comp = drift_compensation(load_model(path), col(corrected, "block_no", np.int64),
+                              xyz(corrected, ("x_mm", "y_mm", "z_mm")), passes, earlier,
+                              float(drift.get("start_s") or 0.0), where=str(path))
+    for j, name in enumerate(DRIFT_COLUMNS):
+        i = corrected.schema.get_field_index(name)
+        corrected = corrected.set_column(i, corrected.schema.field(i), pa.array(comp[:, j]))
+    return corrected
 
 
 def converged(corrected: pa.Table, params: dict) -> bool:

@@ -316,6 +316,7 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
         "relax": step_frac,
         "step_x_um": step[:, 0], "step_y_um": step[:, 1], "step_z_um": step[:, 2],
         "nx": vn[:, 0], "ny": vn[:, 1], "nz": vn[:, 2],
+        "drift_x_um": np.zeros(nb), "drift_y_um": np.zeros(nb), "drift_z_um": np.zeros(nb),
     }, schema=SCHEMA)
 
 

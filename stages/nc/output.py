@@ -1,6 +1,7 @@
 """The corrected NC programs of one program, as files: the source with moved coordinates and the
 scheduled feeds (with a ``feed:`` section), reverse-checked by parsing it back, and on request
-Heidenhain LN blocks and a compensation table."""
+Heidenhain LN blocks and a compensation table. The written coordinates are the error correction
+plus the thermal drift compensation (``drift_*_um`` of ``corrected``, with a ``drift:`` section)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -12,6 +13,7 @@ from stages.nc.heidenhain import write_comp_table, write_ln_program
 from stages.nc.reader import parse_program
 from stages.nc.writer import reverse_check, with_header, write_program
 from stages.tables import col
+from stages.thermal.compensate import with_drift
 
 
 def corrected_programs(inputs: dict, params: dict) -> dict[str, bytes]:
@@ -33,6 +35,9 @@ def corrected_programs(inputs: dict, params: dict) -> dict[str, bytes]:
             return {}
         from schemas.corrected import SCHEMA
         corrected = SCHEMA.empty_table()
+    # the written path: the error correction plus the drift compensation (arc centres with their
+    # end points); the reverse check and the LN blocks see the same
+    corrected = with_drift(corrected)
     data = src.read_bytes()
     scheduled, n_feed = None, 0
     if feeds is not None and feeds.num_rows:
