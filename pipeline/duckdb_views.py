@@ -23,7 +23,7 @@ JOINED = (
     ("errors", "e", "e.program_id = p.program_id and e.pass_id = p.pass_id",
      "e.err_um, e.err_deflection_um, e.err_shape_um, e.err_runout_um, e.err2_um"),
     ("corrected", "c", "c.program_id = p.program_id and c.block_no = p.block_end",
-     "c.move_um, c.x_new_mm, c.y_new_mm, c.z_new_mm, c.clipped"),
+     "c.move_um, c.x_new_mm, c.y_new_mm, c.z_new_mm, c.clipped, c.drift_x_um, c.drift_y_um, c.drift_z_um"),
 )
 
 

@@ -82,7 +82,8 @@ class Writer:
 
     ``fn(inputs, params) -> {file name: bytes}``; the engine writes the files atomically into
     ``<out>/<directory>/`` for every partition that has all ``inputs`` (a name ending in ``?`` may be
-    missing: it is then None).
+    missing: it is then None). Inputs are the published tables; ``name@first`` is the first
+    round's table of a repeated stage even when another round (or none) is published.
     """
 
     name: str
@@ -115,7 +116,7 @@ def mould_graph() -> Graph:
                     until_table="corrected", max_rounds="correct.max_iter", record=correct.round_record,
                     record_inputs=("errors", "corrected", "passes", "passes@first"), kept_tables=("corrected",),
                     stalled=correct.stalled, keep=correct.kept_round)
-    nc = Writer("nc", corrected_programs, inputs=("program_file", "blocks", "corrected?", "errors", "passes", "feeds"),
+    nc = Writer("nc", corrected_programs, inputs=("program_file", "blocks", "corrected?", "corrected@first?", "errors", "passes", "feeds"),
                 params=("correct",), directory="nc")
     return Graph(sources={"program_file": "partition", "stock": "stock", "nominal": "nominal"},
                  stages=main, repeat=rounds, status="programs", writers=(nc,))

@@ -181,7 +181,11 @@ def write_files(run, failures: list) -> int:
                 inputs = {}
                 for spec in writer.inputs:
                     name = spec.rstrip("?")
-                    if run.graph.sources.get(name) == "partition":
+                    base, _, qual = name.partition("@")
+                    if qual == "first":          # the first round's table, whichever round is kept
+                        loc = part.tables[1].get(base) if part.tables else None
+                        inputs[name] = run.cache.read(loc[0], loc[1], base) if loc else None
+                    elif run.graph.sources.get(name) == "partition":
                         inputs[name] = {"path": part.path, "sha256": part.sha256, "program_id": part.program_id}
                     elif name in have:
                         stage, key = have[name]

@@ -8,6 +8,7 @@ import json
 import numpy as np
 import pytest
 import pandas as pd
+import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 import trimesh
@@ -112,11 +113,31 @@ def test_written_vertices_move_against_the_drift_at_their_time(tmp_path):
         duration = float(passes[passes.program_id == name].t_end_s.max())
         assert abs(duration - _hand_times(text)[-1]) < 1e-9
         offset += duration
+    # a program whose error correction is not kept (corrected None) still gets its drift
+    # compensation, from the first round's table, on the coordinates as programmed
+    _drift_without_correction(tmp_path, pq.read_table(out / "tables" / "corrected"))
     # a refitted model under the same path is a new cache key: the correction is computed again
     model.write_text(yaml.safe_dump(_model(gain_x=2 * AX)))
     _run(path)
     cor2 = pd.read_parquet(out / "tables" / "corrected")
     np.testing.assert_allclose(cor2.drift_x_um, 2 * cor.drift_x_um, atol=1e-9)
+
+
+def _drift_without_correction(tmp_path, first):
+    from stages.nc.output import corrected_programs
+    src = tmp_path / "nc" / "b.nc"
+    blocks, _ = parse_program(src.read_bytes(), str(src), "b")
+    first = first.filter(pc.equal(first.column("program_id"), "b"))
+    inputs = {"program_file": {"path": str(src), "sha256": "0" * 64, "program_id": "b"}, "blocks": blocks,
+              "corrected": None, "corrected@first": first, "errors": None, "passes": None, "feeds": None}
+    text = corrected_programs(inputs, {"correct": {}})["b.nc"]
+    assert b"THERMAL DRIFT COMPENSATED: MAX" in text and b"MAX MOVE 0.0 UM" in text
+    got = _written_from(text, tmp_path / "b_drift_only.nc")
+    f = first.to_pandas()
+    want = f[["x_mm", "y_mm", "z_mm"]].to_numpy() + f[["drift_x_um", "drift_y_um", "drift_z_um"]].to_numpy() / 1000
+    np.testing.assert_allclose(got, want, atol=0.5e-3 + 1e-9)
+    zero = first.drop_columns(["drift_x_um", "drift_y_um", "drift_z_um"])
+    assert corrected_programs({**inputs, "corrected@first": zero}, {"correct": {}}) == {}
 
 
 def _written_from(data: bytes, path):
@@ -218,3 +239,34 @@ def test_a_vertex_inside_a_merged_pass_is_reached_at_its_fraction_of_the_pass():
 def pa_array(v):
     import pyarrow as pa
     return pa.array(np.asarray(v, np.int32))
+
+
+def test_an_arc_moves_with_its_end_point(tmp_path):
+    """Arc centres move by their end point's compensation: the written arc is the programmed one
+    moved by it (the reverse check parses the centre back from I J)."""
+    from schemas.corrected import SCHEMA
+    from stages.nc.output import corrected_programs
+    src = tmp_path / "arc.nc"
+    src.write_text("%\nO5\nG90 G17 G21\nT1 M6\nS6000 M3\nG0 X10.0 Y0.0 Z1.0\nG1 Z0.0 F600\nG3 X0.0 Y10.0 I-10.0 J0.0\nG1 X-5.0\nM30\n%\n")
+    blocks, _ = parse_program(src.read_bytes(), str(src), "arc")
+    b = blocks.to_pandas()
+    b = b[b.motion <= 3].reset_index(drop=True)
+    n = len(b)
+    drift = np.column_stack([np.linspace(-3.0, -12.0, n), np.linspace(2.0, 8.0, n), np.zeros(n)])
+    first = pa.table({**{c: b[c].to_numpy() for c in ("program_id", "block_no", "line_no", "motion")},
+                      **{f"{a}_mm": b[f"{a}1_mm"].to_numpy() for a in "xyz"},
+                      **{f"{a}_new_mm": b[f"{a}1_mm"].to_numpy() for a in "xyz"},
+                      **{f"c{a}_new_mm": np.full(n, np.nan) for a in "xyz"},
+                      "move_um": np.zeros(n), "change_um": np.zeros(n), "clipped": np.zeros(n, bool),
+                      "gouge_limit_um": np.zeros(n), "iteration": np.ones(n, np.int32), "relax": np.ones(n),
+                      **{f"step_{a}_um": np.zeros(n) for a in "xyz"}, **{f"n{a}": np.full(n, np.nan) for a in "xyz"},
+                      **{f"drift_{a}_um": drift[:, j] for j, a in enumerate("xyz")}}, schema=SCHEMA)
+    inputs = {"program_file": {"path": str(src), "sha256": "0" * 64, "program_id": "arc"}, "blocks": blocks,
+              "corrected": None, "corrected@first": first, "errors": None, "passes": None, "feeds": None}
+    text = corrected_programs(inputs, {"correct": {}})["arc.nc"]
+    new, _ = parse_program(text, "arc_new.nc", "arc")
+    arc_row = int(np.flatnonzero(b.motion == 3)[0])
+    got = new.to_pandas().query("motion == 3").iloc[0]
+    shift = drift[arc_row] / 1000
+    np.testing.assert_allclose([got.x1_mm, got.y1_mm], np.array([0.0, 10.0]) + shift[:2], atol=0.5e-3 + 1e-9)
+    np.testing.assert_allclose([got.cx_mm, got.cy_mm], shift[:2], atol=0.5e-3 + 1e-9)

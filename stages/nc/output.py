@@ -13,7 +13,7 @@ from stages.nc.heidenhain import write_comp_table, write_ln_program
 from stages.nc.reader import parse_program
 from stages.nc.writer import reverse_check, with_header, write_program
 from stages.tables import col
-from stages.thermal.compensate import with_drift
+from stages.thermal.compensate import drift_only, max_drift_um, with_drift
 
 
 def corrected_programs(inputs: dict, params: dict) -> dict[str, bytes]:
@@ -22,7 +22,8 @@ def corrected_programs(inputs: dict, params: dict) -> dict[str, bytes]:
     Parameters
     ----------
     inputs : {"program_file": {path, sha256, program_id}, "blocks", "corrected" (None: no correction
-        kept; a file only with scheduled feeds), "errors", "passes", "feeds"}
+        kept; a file only with scheduled feeds or a drift compensation), "corrected@first" (the
+        first round's: its drift compensation), "errors", "passes", "feeds"}
     params : {"correct": {max_move_um, ln_normals, comp_table, ...}}
     """
     f = inputs["program_file"]
@@ -31,12 +32,15 @@ def corrected_programs(inputs: dict, params: dict) -> dict[str, bytes]:
     opts = params.get("correct") or {}
     feeds = inputs.get("feeds")
     if corrected is None:
+        corrected = drift_only(inputs.get("corrected@first"), blocks)
+    if corrected is None:
         if feeds is None or feeds.num_rows == 0:
             return {}
         from schemas.corrected import SCHEMA
         corrected = SCHEMA.empty_table()
     # the written path: the error correction plus the drift compensation (arc centres with their
     # end points); the reverse check and the LN blocks see the same
+    drift_um = max_drift_um(corrected)
     corrected = with_drift(corrected)
     data = src.read_bytes()
     scheduled, n_feed = None, 0
@@ -45,7 +49,7 @@ def corrected_programs(inputs: dict, params: dict) -> dict[str, bytes]:
         data, n_feed = write_feeds(data, blocks, scheduled)
     if corrected.num_rows:
         text = write_program(data, blocks, corrected, source_sha256=f["sha256"],
-                             max_move_um=opts.get("max_move_um"), feeds_changed=n_feed)
+                             max_move_um=opts.get("max_move_um"), feeds_changed=n_feed, drift_um=drift_um)
     else:
         text = with_header(data, f"(FEEDS SCHEDULED - {n_feed} F WORDS - COORDINATES AS PROGRAMMED - "
                                  f"SOURCE SHA256 {f['sha256'].upper()})") if n_feed else data

@@ -101,7 +101,7 @@ def _via_rows(corrected: pa.Table):
 
 
 def write_program(data: bytes, blocks: pa.Table, corrected: pa.Table, *, source_sha256: str | None = None,
-                  max_move_um: float | None = None, feeds_changed: int = 0) -> bytes:
+                  max_move_um: float | None = None, feeds_changed: int = 0, drift_um: float = 0.0) -> bytes:
     """The corrected program text.
 
     Parameters
@@ -112,6 +112,7 @@ def write_program(data: bytes, blocks: pa.Table, corrected: pa.Table, *, source_
     source_sha256 : hash of ``data`` for the header (computed when None)
     max_move_um : the clip limit, for the header (optional)
     feeds_changed : F words the feed schedule wrote into ``data`` (said in the header)
+    drift_um : the largest thermal drift compensation in the new coordinates (said in the header)
 
     Returns
     -------
@@ -297,6 +298,7 @@ def write_program(data: bytes, blocks: pa.Table, corrected: pa.Table, *, source_
             + (f" AT {max_move_um:g} UM" if max_move_um is not None else "")
             + f" - {rounds} ROUND{'S' if rounds != 1 else ''}"
             + (f" - FEEDS SCHEDULED: {feeds_changed} F WORDS" if feeds_changed else "")
+            + (f" - THERMAL DRIFT COMPENSATED: MAX {drift_um:.1f} UM" if drift_um else "")
             + f" - SOURCE SHA256 {sha.upper()})").encode("ascii")
     at = _header_line(lines)
     first_line = lines[max(at, 0)]

@@ -162,3 +162,34 @@ def with_drift(corrected: pa.Table) -> pa.Table:
             shifted = pc.add(v, pa.array(d[:, j]))
             out = out.set_column(i, out.schema.field(i), shifted)
     return out
+
+
+def drift_only(first: pa.Table | None, blocks: pa.Table) -> pa.Table | None:
+    """A ``corrected`` table that moves the vertices by the drift compensation alone, from the first
+    round's table ``first``: for a program whose error correction is not kept (no round predicted
+    better than the program as written) the drift is still there to compensate. None when
+    ``first`` carries no compensation."""
+    if first is None or first.num_rows == 0 or not set(DRIFT_COLUMNS) <= set(first.column_names):
+        return None
+    if not any(np.any(col(first, c)) for c in DRIFT_COLUMNS):
+        return None
+    out = first
+    arc = np.isin(col(first, "motion", np.int64), (2, 3))
+    rows = np.searchsorted(col(blocks, "block_no", np.int64), col(first, "block_no", np.int64))
+    n = first.num_rows
+    values = {"move_um": np.zeros(n), "change_um": np.zeros(n), "clipped": np.zeros(n, bool),
+              "gouge_limit_um": np.zeros(n)}
+    for a in AXES:
+        values[f"{a}_new_mm"] = col(first, f"{a}_mm")
+        values[f"c{a}_new_mm"] = pa.array(col(blocks, f"c{a}_mm")[rows], mask=~arc)
+    for name, v in values.items():
+        i = out.schema.get_field_index(name)
+        out = out.set_column(i, out.schema.field(i), pa.array(v, out.schema.field(i).type))
+    return out
+
+
+def max_drift_um(corrected: pa.Table) -> float:
+    """The largest drift compensation of ``corrected`` (µm), 0 without one."""
+    if corrected.num_rows == 0 or not set(DRIFT_COLUMNS) <= set(corrected.column_names):
+        return 0.0
+    return float(np.linalg.norm(np.stack([col(corrected, c) for c in DRIFT_COLUMNS], 1), axis=1).max())
