@@ -335,7 +335,7 @@ def load_workflow(path: str | Path, overlays=()) -> tuple[Workflow, Path]:
     for ov in overlays:
         from pipeline.overlay import OverlayError, apply_overlay, read_overlay
         try:
-            over, ov_text = read_overlay(ov)
+            over, ov_text = read_overlay(ov, Workflow, FILE_KEYS)
             raw = apply_overlay(raw, over, ov)
         except OverlayError as e:
             raise WorkflowError(str(e)) from None

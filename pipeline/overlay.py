@@ -31,13 +31,17 @@ class OverlayError(ValueError):
     """An overlay that cannot be used; the message names the overlay file (and line, key)."""
 
 
-def read_overlay(path) -> tuple[dict, str]:
+def read_overlay(path, root, file_keys) -> tuple[dict, str]:
     """The overlay's mapping, its relative paths made absolute against its folder, and its text.
 
     Parameters
     ----------
     path : str or Path
         The overlay YAML file.
+    root : pydantic model class
+        The workflow model whose keys the overlay may set (``pipeline.config.Workflow``).
+    file_keys : tuple of str
+        Keys whose string values name files at any depth (``pipeline.config.FILE_KEYS``).
 
     Returns
     -------
@@ -57,15 +61,14 @@ def read_overlay(path) -> tuple[dict, str]:
         raw = {}                                  # an empty overlay (nothing diagnosed) changes nothing
     if not isinstance(raw, dict):
         raise OverlayError(f"{path}: an overlay is a mapping of workflow keys, got {type(raw).__name__}")
-    check_keys(raw, path, text)
-    return absolute_paths(raw, path.resolve().parent), text
+    check_keys(raw, path, text, root)
+    return absolute_paths(raw, path.resolve().parent, file_keys), text
 
 
-def check_keys(raw: dict, path: Path, text: str) -> None:
-    """Refuse a key the workflow models do not declare, naming the overlay file, its line and the key."""
+def check_keys(raw: dict, path: Path, text: str, root) -> None:
+    """Refuse a key the workflow model ``root`` does not declare, naming the overlay file, its line and the key."""
     import difflib
 
-    from pipeline.config import Workflow
     from pipeline.config_errors import _valid_keys, _yaml_lines
     lines = _yaml_lines(text)
 
@@ -76,7 +79,7 @@ def check_keys(raw: dict, path: Path, text: str) -> None:
             return
         if not isinstance(node, dict):
             return
-        valid = _valid_keys(Workflow, where)
+        valid = _valid_keys(root, where)
         if not valid:                            # a free mapping (measurements.columns)
             return
         for k, v in node.items():
@@ -90,10 +93,9 @@ def check_keys(raw: dict, path: Path, text: str) -> None:
     walk(raw, ())
 
 
-def absolute_paths(raw: dict, folder: Path) -> dict:
-    """``raw`` with every relative file reference (``FILE_KEYS`` at any depth, the top-level
+def absolute_paths(raw: dict, folder: Path, file_keys) -> dict:
+    """``raw`` with every relative file reference (``file_keys`` at any depth, the top-level
     paths of ``TOP_PATHS``) made absolute against ``folder``."""
-    from pipeline.config import FILE_KEYS
 
     def absolute(v):
         if isinstance(v, str):
@@ -106,7 +108,7 @@ def absolute_paths(raw: dict, folder: Path) -> dict:
         if isinstance(node, list):
             return [walk(v) for v in node]
         if isinstance(node, dict):
-            return {k: (absolute(v) if k in FILE_KEYS and isinstance(v, str) else walk(v)) for k, v in node.items()}
+            return {k: (absolute(v) if k in file_keys and isinstance(v, str) else walk(v)) for k, v in node.items()}
         return node
     out = walk(raw)
     for k in TOP_PATHS:
