@@ -161,3 +161,15 @@ def test_diagnose_writes_a_model_update_of_the_fitted_runout(tmp_path):
     err = pd.read_parquet(tmp_path / "out" / "tables" / "errors")
     q = np.radians(err.contact_deg.to_numpy())
     assert np.allclose(np.abs(err.err_runout_um), e * np.sin(q), atol=1e-6)
+
+
+def test_the_diagnosis_profile_table_adds_the_dent_to_the_workflow_profile(tmp_path):
+    """``Predictor.profile_csv`` (the re-prediction's table) = the workflow's profile (here 1 µm at
+    0°, 3 µm at 90°, linear between) + a·exp(−½((q−q0)/w)²)."""
+    from stages.gap.predictor import Predictor
+    from tests.gap_helpers import TOOL
+    base = write(tmp_path / "base.csv", "contact_deg,error_um\n0,1\n90,3\n")
+    p = Predictor({}, dict(TOOL, profile=str(base)), {}, {}, workdir=tmp_path / "w")
+    prof = pd.read_csv(p.profile_csv({"a_um": -2.0, "q0_deg": 45.0, "width_deg": 5.0}, "x.csv"))
+    q = prof.contact_deg.to_numpy()
+    assert np.allclose(prof.error_um, 1 + 2 * q / 90 - 2.0 * np.exp(-0.5 * ((q - 45) / 5) ** 2), atol=1e-5)
