@@ -273,6 +273,10 @@ def diagnose(workflow, measurements, out, reference):
         + "; by normal: " + ", ".join(f"{d['direction']} {d['measured']} (+{d['rejected']} rejected)" for d in pl["directions"]))
     for w in pl["warnings"]:
         click.echo(f"warning: {w}")
+    ov = s.get("overlay") or {}
+    if ov:
+        click.echo(f"model update: {ov['file']} (applied: {', '.join(ov['applied']) or 'none'}"
+                   + (f"; not applied: {', '.join(ov['unapplied'])}" if ov["unapplied"] else "") + ")")
     hidden = [f"{e}.{k}" for e, d in s.get("observability", {}).items() for k, why in d.items() if why]
     if hidden:
         click.echo("not observable from these points (held at nominal): " + ", ".join(hidden))

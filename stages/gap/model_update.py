@@ -131,7 +131,9 @@ def workflow_update(params: dict, observability: dict, tool: dict, material: dic
     if scale != 1.0:
         mat = {k: float(material[k]) * scale for k in COEFFS if material.get(k) is not None}
         overlay["material"] = dict({} if material_t is None else {"t": material_t}, **mat)
-        applied["force_scale"] = {f"material.{k}": v for k, v in mat.items()} | {"scale": scale}
+        # the reference part's calibration s0 alone (no force_scale kept) is a model change too
+        label = "force_scale" if "force_scale" in params and "force_scale" not in unapplied else "calibration"
+        applied[label] = {f"material.{k}": v for k, v in mat.items()} | {"scale": scale}
     if "thermal_drift" in params:
         p = params["thermal_drift"]
         if has_drift:
