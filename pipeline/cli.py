@@ -24,12 +24,15 @@ def main():
 @click.option("--until", help="Stop after this stage.")
 @click.option("--fresh", is_flag=True, help="Ignore and delete the cache of this output directory.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars.")
-def run(workflow, out, scheduler, workers, until, fresh, quiet):
+@click.option("--overlay", "overlays", multiple=True, type=click.Path(exists=True, dir_okay=False),
+              help="YAML of workflow keys merged over WORKFLOW before validation (e.g. gap/model_update.yaml "
+                   "of `pipeline diagnose`); repeatable, later ones win; paths relative to the overlay's folder.")
+def run(workflow, out, scheduler, workers, until, fresh, quiet, overlays):
     """Run WORKFLOW: only partitions not already in the cache are computed."""
     from pipeline.engine import Run
     from pipeline.graph import mould_graph
     try:
-        r = Run(workflow, mould_graph(), out=out, until=until, fresh=fresh)
+        r = Run(workflow, mould_graph(), out=out, until=until, fresh=fresh, overlays=overlays)
         summary = r.execute(scheduler=scheduler, workers=workers, progress=not quiet)
     except (WorkflowError, InputError) as e:
         click.echo(f"error: {e}", err=True)
@@ -42,12 +45,15 @@ def run(workflow, out, scheduler, workers, until, fresh, quiet):
 @click.argument("workflow", type=click.Path(dir_okay=False))
 @click.option("--out", "out", type=click.Path(file_okay=False))
 @click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
-def status(workflow, out, as_json):
+@click.option("--overlay", "overlays", multiple=True, type=click.Path(exists=True, dir_okay=False),
+              help="YAML of workflow keys merged over WORKFLOW before validation (e.g. gap/model_update.yaml "
+                   "of `pipeline diagnose`); repeatable, later ones win; paths relative to the overlay's folder.")
+def status(workflow, out, as_json, overlays):
     """Show which stages and partitions of WORKFLOW are done."""
     from pipeline.engine import Run
     from pipeline.graph import mould_graph
     try:
-        rows = Run(workflow, mould_graph(), out=out).status()
+        rows = Run(workflow, mould_graph(), out=out, overlays=overlays).status()
     except WorkflowError as e:
         click.echo(f"error: {e}", err=True)
         sys.exit(2)
@@ -267,6 +273,10 @@ def diagnose(workflow, measurements, out, reference):
         + "; by normal: " + ", ".join(f"{d['direction']} {d['measured']} (+{d['rejected']} rejected)" for d in pl["directions"]))
     for w in pl["warnings"]:
         click.echo(f"warning: {w}")
+    ov = s.get("overlay") or {}
+    if ov:
+        click.echo(f"model update: {ov['file']} (applied: {', '.join(ov['applied']) or 'none'}"
+                   + (f"; not applied: {', '.join(ov['unapplied'])}" if ov["unapplied"] else "") + ")")
     hidden = [f"{e}.{k}" for e, d in s.get("observability", {}).items() for k, why in d.items() if why]
     if hidden:
         click.echo("not observable from these points (held at nominal): " + ", ".join(hidden))

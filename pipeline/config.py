@@ -313,11 +313,13 @@ def _pick(v, t, key):
     raise WorkflowError(f"{key}: no entry for T{t} (the workflow has T{', T'.join(str(e.t) for e in v)})")
 
 
-def load_workflow(path: str | Path) -> tuple[Workflow, Path]:
+def load_workflow(path: str | Path, overlays=()) -> tuple[Workflow, Path]:
     """Read and validate a workflow file; return it and the base directory for relative paths.
 
     The base directory is the one holding ``workflows/`` (the project root) when the file sits in
-    a ``workflows`` folder, else the file's own directory.
+    a ``workflows`` folder, else the file's own directory. ``overlays`` (files of workflow keys,
+    ``pipeline.overlay``) are merged over the file in order before validation; a bad value they
+    bring in is reported against the overlay that gave it.
     """
     path = Path(path)
     if not path.is_file():
@@ -329,15 +331,35 @@ def load_workflow(path: str | Path) -> tuple[Workflow, Path]:
         raise WorkflowError(f"{path}: not valid YAML: {e}") from None
     if not isinstance(raw, dict):
         raise WorkflowError(f"{path}: a workflow is a mapping of keys (DESIGN §4), got {type(raw).__name__}")
+    read = []
+    for ov in overlays:
+        from pipeline.overlay import OverlayError, apply_overlay, read_overlay
+        try:
+            over, ov_text = read_overlay(ov, Workflow, FILE_KEYS)
+            raw = apply_overlay(raw, over, ov)
+        except OverlayError as e:
+            raise WorkflowError(str(e)) from None
+        read.append((Path(ov), over, ov_text))
     try:
         wf = Workflow.model_validate(raw)
     except ValidationError as e:
         from pipeline.config_errors import format_error
-        raise WorkflowError(format_error(path, e, text, Workflow)) from None
+        where, where_text = _blame(path, text, read, e)
+        raise WorkflowError(format_error(where, e, where_text, Workflow)) from None
     base = path.resolve().parent
     if base.name == "workflows":
         base = base.parent
     return wf, base
+
+
+def _blame(path: Path, text: str, overlays: list, err: ValidationError) -> tuple[Path, str]:
+    """(file, text) to report a validation error against: the last overlay that sets the first
+    bad key (its top-level section), else the workflow file."""
+    head = next((str(e["loc"][0]) for e in err.errors() if e["loc"]), None)
+    for ov, over, ov_text in reversed(overlays):
+        if head in over:
+            return ov, ov_text
+    return path, text
 
 
 def resolve(base: Path, p: str) -> Path:

@@ -22,6 +22,29 @@ bad value is an error naming the file, the line and the key. Relative paths are 
 project (the folder holding `workflows/`). `tool` and `material` may be lists keyed by T number `t`.
 """
 
+OVERLAYS = """
+## Overlays (`pipeline run WORKFLOW --overlay FILE`)
+
+An overlay is a YAML file of workflow keys, in the workflow's shape, merged over the workflow before
+it is validated (`pipeline diagnose` writes one: `gap/model_update.yaml`). `--overlay` may be given
+several times; later overlays win. `pipeline status` takes the same option.
+
+- Mappings merge key by key, recursively; any other value (a number, a string, a list, `null`)
+  replaces the workflow's (`drift: null` turns drift compensation off; a `machine.frf.x` list replaces
+  the workflow's modes).
+- `tool` / `material` as a list keyed by `t` in the workflow: an overlay mapping with a `t` merges into
+  the entry with that `t` (a `t` the workflow lacks adds an entry, which must then be complete); a
+  mapping without `t` merges into every entry; an overlay list merges entry by entry by `t`. Where the
+  workflow has one mapping, an overlay mapping merges into it and an overlay list replaces it.
+- Relative paths in an overlay (`tool.profile`, `machine.frf.table`, `drift.model`, and the top-level
+  `programs`, `stock`, `nominal`, `measurements`, `output`) are relative to the overlay file's folder.
+- An unknown key is an error naming the overlay file, its line and the key; a bad value an overlay
+  brings in is reported against the overlay.
+- The merged values enter the cache keys as workflow values do: a stage recomputes when a key it
+  declares changed (every stage that declares `tool` for a `tool.runout_um` overlay; `parse` not).
+  `run.json` `overlay` lists the files and the report names them.
+"""
+
 
 def _type_name(annotation) -> str:
     origin = typing.get_origin(annotation)
@@ -60,7 +83,7 @@ def render() -> str:
         for name, field in model.model_fields.items():
             out.append(f"| `{name}` | {_type_name(field.annotation)} | {_default(field)} | {field.description or ''} |")
             queue.extend(m for m in models_in(field.annotation) if m not in seen)
-    return "\n".join(out) + "\n"
+    return "\n".join(out) + "\n" + OVERLAYS
 
 
 if __name__ == "__main__":

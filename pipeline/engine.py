@@ -78,8 +78,11 @@ class Run:
     """One invocation of a workflow: config, partitions, cache, reports."""
 
     def __init__(self, workflow_path: str, graph: Graph, out: Optional[str] = None, until: Optional[str] = None,
-                 fresh: bool = False):
-        self.wf, self.base = load_workflow(workflow_path)
+                 fresh: bool = False, overlays=()):
+        # overlays change the workflow's values before validation; they reach the cache keys as
+        # those values (a stage recomputes only when a key it declares changed)
+        self.overlays = [str(o) for o in overlays]
+        self.wf, self.base = load_workflow(workflow_path, self.overlays)
         self.workflow_path = workflow_path
         self.graph = graph
         self.out = Path(out) if out else resolve(self.base, self.wf.output)

@@ -2,7 +2,8 @@
 
 The engine runs the workflow (cached) up to the tables a command needs (``split``, ``errors``); the
 diagnosis is ``stages.gap``. Writes ``<out>/tables/gap_{points,effects}/<name>.parquet``, ``<out>/gap/``
-(summary.json, index.html, residual_map.png, rejected.csv, errors_updated.parquet), ``<out>/blind/summary.json``.
+(summary.json, index.html, residual_map.png, rejected.csv, errors_updated.parquet, model_update.yaml and the
+files it names), ``<out>/blind/summary.json``.
 """
 from __future__ import annotations
 
@@ -22,6 +23,7 @@ from stages.gap.associate import associate
 from stages.gap.blind import blind_cases, check_kinds
 from stages.gap.calibration import apply_baseline, calibrate
 from stages.gap.measurements import points_and_normals, read_measurements, write_measurements
+from stages.gap.model_update import workflow_update, write_update
 from stages.gap.plans import plan_counts, plan_mask
 from stages.gap.predictor import HOW_ADDED, Predictor, diagnose_points
 from stages.gap.probe import probe_program
@@ -166,9 +168,24 @@ def diagnose_cmd(workflow: str, measurements: str, out: Optional[str] = None,
     summary["plan"] = plan_diagnostics(meas, F, rej2, len(rej))
     summary.update({"measurements": str(measurements), "n_rejected": len(rejected),
                     "timing_s": {"associate": t1 - t0, "diagnose": t2 - t1}})
+    summary["overlay"] = model_update_file(wf, base, tool, res, calibration, F, gdir)
     (gdir / "summary.json").write_text(json.dumps(summary, indent=2))
     report(gdir, F, res, summary)
     return summary
+
+
+def model_update_file(wf, base, tool: dict, res: dict, calibration: Optional[dict], F: dict, gdir: Path) -> dict:
+    """Write ``gdir/model_update.yaml`` (``stages.gap.model_update``): the kept effects as workflow
+    keys for ``pipeline run --overlay``; returns its path and the effects applied and not applied."""
+    material = program_material(wf, tool)
+    upd = workflow_update(res["params"], res.get("observability", {}), tool, material,
+                          tool_t=tool.get("t") if isinstance(wf.tool, list) else None,
+                          material_t=material.get("t") if isinstance(wf.material, list) else None,
+                          base=base, outdir=gdir, has_drift=wf.drift is not None,
+                          force_scale0=calibration["force_scale_s0"] if calibration else 1.0,
+                          cut_len_mean_m=float(np.mean(F["cut_len_mm"])) * 1e-3 if len(F["cut_len_mm"]) else 0.0)
+    path = write_update(gdir / "model_update.yaml", upd, res["params"])
+    return {"file": str(path), "applied": upd["applied"], "unapplied": upd["unapplied"]}
 
 
 def plan_diagnostics(meas: pa.Table, F: dict, rejected: list, unreadable: int) -> dict:

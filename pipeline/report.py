@@ -68,7 +68,7 @@ are not predicted) or the run stopped before <code>errors</code>.</p>""")
 
 
 def write_report(out: str | Path, title: str = "run", nominal: str | Path | None = None,
-                 kept: dict | None = None) -> Path | None:
+                 kept: dict | None = None, overlays: list | None = None) -> Path | None:
     """Write ``<out>/report/`` (pictures, the coloured mesh, index.html). Returns the HTML path,
     None before passes.
 
@@ -79,6 +79,7 @@ def write_report(out: str | Path, title: str = "run", nominal: str | Path | None
     nominal : the design model; with it the error is drawn on the part and written as
         ``deviation.ply``, else drawn at the generating points
     kept : ``run.json``'s ``kept`` (program → the correction written and its predicted deviation)
+    overlays : the overlay files merged over the workflow (``--overlay``), named on the page
     """
     import matplotlib
     matplotlib.use("Agg")
@@ -125,13 +126,16 @@ def write_report(out: str | Path, title: str = "run", nominal: str | Path | None
            '<code>err_um</code> per vertex; MeshLab, ParaView). Grey: no predicted pass there '
            '(not cut, or pruned: contact angle below <code>prune.min_contact_deg</code>).</p>'
            if (rep / "deviation.ply").is_file() else "")
+    # which model the prediction is: the workflow alone, or with a diagnosis' model update over it
+    over = (f'<p id="overlay">Overlay: {html.escape(", ".join(overlays))} (merged over the workflow)</p>\n'
+            if overlays else '<p id="overlay">Overlay: none (the workflow as written)</p>\n')
     warn = ("<h2>Warnings</h2><ul>" + "".join(f"<li>{w}</li>" for w in warnings) + "</ul>") if warnings else ""
     page = f"""<!doctype html><meta charset="utf-8"><title>{html.escape(title)} — predicted machining error</title>
 <style>body{{font-family:sans-serif;margin:2em;max-width:1400px}}td,th{{padding:2px 8px;text-align:right}}
 table{{border-collapse:collapse}}tr:nth-child(even){{background:#f3f3f3}}#broken{{color:#b00}}</style>
 <h1>{html.escape(title)}: predicted machining error</h1>
 <p id="broken"></p>
-<p>{stats}. Sign: positive = material left (undercut), negative = overcut, along the surface normal.</p>
+{over}<p>{stats}. Sign: positive = material left (undercut), negative = overcut, along the surface normal.</p>
 {warn}
 <h2>Programs</h2>
 <table><tr><th>program</th><th>status</th><th>passes</th><th>cutting</th><th>predicted</th><th>machining time</th>

@@ -16,9 +16,9 @@ import pyarrow as pa
 from stages import deflection as deflection_stage
 from stages import errors as errors_stage
 from stages import forces as forces_stage
-from stages.cutting.surface_error import read_profile
 from stages.gap.associate import predicted_at_points
 from stages.gap.diagnose import diagnose, where
+from stages.gap.model_update import profile_values
 from stages.gap.fit import fold_fits, rms, shrink_where_acting
 from stages.gap.unexplained import SHRINK_CLAIM, unexplained
 from stages.geometry.cutter import Cutter
@@ -94,11 +94,7 @@ class Predictor:
             Path of the CSV.
         """
         q = np.round(np.arange(0.0, 90.0 + 1e-9, 0.25), 6)
-        e = contour["a_um"] * np.exp(-0.5 * ((q - contour["q0_deg"]) / contour["width_deg"]) ** 2)
-        base = Cutter.from_params(self.tool)
-        if base.profile:
-            pq_, pe_ = read_profile(base.profile)
-            e = e + np.interp(q, pq_, pe_)
+        e = profile_values(q, Cutter.from_params(self.tool).profile, contour, 0.0)
         if self.workdir is None:
             import tempfile
             self.workdir = Path(tempfile.mkdtemp(prefix="gap_"))
