@@ -14,12 +14,12 @@ import pyarrow as pa
 
 from stages.geometry.sweeps import ragged_ranges
 from stages.nc.lexer import INCH_MM
-from stages.nc.writer import _format, _splice, scan_words
+from stages.nc.words import format_values, scan_words, splice
 from stages.tables import col
 
 
 def _integers(values: np.ndarray, plus: np.ndarray) -> np.ndarray:
-    """Whole numbers as right-aligned text rows (uint8, 0 = padding), like ``writer._format``."""
+    """Whole numbers as right-aligned text rows (uint8, 0 = padding), like ``words.format_values``."""
     texts = [(b"+" if p else b"") + str(int(v)).encode() for v, p in zip(values, plus)]
     width = max(len(t) for t in texts)
     return np.array([[0] * (width - len(t)) + list(t) for t in texts], np.uint8)
@@ -101,10 +101,10 @@ def write_feeds(data: bytes, blocks: pa.Table, feed_mm_min: np.ndarray) -> tuple
     decs = np.full(vals.size, dec)
     plus = np.concatenate([sc["plus"][wi], np.zeros(ir.size, bool)])
     lead0 = np.concatenate([sc["lead0"][wi], np.ones(ir.size, bool)])
-    body = _format(vals, decs, plus, lead0) if dec else _integers(vals, plus)
+    body = format_values(vals, decs, plus, lead0) if dec else _integers(vals, plus)
     pre = np.zeros((vals.size, 2), np.uint8)
     pre[rr.size:, 0] = np.where(spaced[line[ir]], 32, 0)
     pre[rr.size:, 1] = ord("F")
     body = np.hstack([pre, body])
     o = np.argsort(start, kind="stable")
-    return _splice(data, start[o], end[o], body[o]), int(vals.size)
+    return splice(data, start[o], end[o], body[o]), int(vals.size)

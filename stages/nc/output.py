@@ -11,7 +11,8 @@ import numpy as np
 from stages.nc.feed_words import block_feeds, write_feeds
 from stages.nc.heidenhain import write_comp_table, write_ln_program
 from stages.nc.reader import parse_program
-from stages.nc.writer import reverse_check, with_header, write_program
+from stages.nc.words import with_header
+from stages.nc.writer import reverse_check, write_program
 from stages.tables import col
 from stages.thermal.compensate import drift_only, max_drift_um, with_drift
 

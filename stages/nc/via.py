@@ -19,7 +19,7 @@ import numpy as np
 import pyarrow as pa
 
 from stages.nc.moves import corner_ends, split_long
-from stages.nc.writer import scan_words, small_ints
+from stages.nc.words import scan_words, small_ints
 from stages.tables import col
 
 _VIA_LETTERS = frozenset(b"NGXYZF")
