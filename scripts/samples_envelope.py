@@ -78,28 +78,34 @@ class Sweeps:
     def __add__(self, other: "Sweeps") -> "Sweeps":
         return Sweeps(np.vstack([self.a, other.a]), np.vstack([self.b, other.b]), np.concatenate([self.r, other.r]))
 
-    def lower(self, xy: np.ndarray) -> np.ndarray:
-        """The surface left at each (x, y): the lowest capsule point over it; +inf where none reaches."""
-        xy = np.asarray(xy, float).reshape(-1, 2)
-        out = np.full(len(xy), np.inf)
+    def pairs(self, xy: np.ndarray):
+        """The (point, capsule) pairs whose cells meet, in chunks of about ``PAIRS_PER_CHUNK``:
+        yields (start, stop, pt, cap, first, has) — the chunk's points [start, stop), each pair's
+        point and capsule (a point's pairs contiguous, ``first`` the offset of each point's first,
+        ``has`` whether it has any)."""
         c = self._cell(xy)
         key = c[:, 0] * self.ny + c[:, 1]
         inside = (c >= 0).all(1) & (c[:, 1] < self.ny)
         lo = np.searchsorted(self.keys, key, "left")
         n = np.where(inside, np.searchsorted(self.keys, key, "right") - lo, 0)
         start = 0
-        while start < len(xy):                                 # chunks of about PAIRS_PER_CHUNK pairs
+        while start < len(xy):
             csum = np.cumsum(n[start:])
             stop = start + max(1, int(np.searchsorted(csum, PAIRS_PER_CHUNK)))
             nn = n[start:stop]
             pt = np.repeat(np.arange(start, stop), nn)
             if pt.size:
                 cap = self.cap[np.repeat(lo[start:stop] - np.cumsum(nn) + nn, nn) + np.arange(pt.size)]
-                z = lowest_on_capsules(xy[pt], self.a[cap], self.b[cap], self.r[cap])
-                first = np.cumsum(nn) - nn                     # a point's pairs are contiguous
-                has = nn > 0
-                out[start:stop][has] = np.minimum.reduceat(z, first[has])
+                yield start, stop, pt, cap, np.cumsum(nn) - nn, nn > 0
             start = stop
+
+    def lower(self, xy: np.ndarray) -> np.ndarray:
+        """The surface left at each (x, y): the lowest capsule point over it; +inf where none reaches."""
+        xy = np.asarray(xy, float).reshape(-1, 2)
+        out = np.full(len(xy), np.inf)
+        for start, stop, pt, cap, first, has in self.pairs(xy):
+            z = lowest_on_capsules(xy[pt], self.a[cap], self.b[cap], self.r[cap])
+            out[start:stop][has] = np.minimum.reduceat(z, first[has])
         return out
 
 
@@ -109,26 +115,11 @@ def gap(sweeps: Sweeps, points: np.ndarray) -> np.ndarray:
     no capsule's box reaches the point's cell."""
     pts = np.asarray(points, float).reshape(-1, 3)
     out = np.full(len(pts), np.inf)
-    c = sweeps._cell(pts[:, :2])
-    key = c[:, 0] * sweeps.ny + c[:, 1]
-    inside = (c >= 0).all(1) & (c[:, 1] < sweeps.ny)
-    lo = np.searchsorted(sweeps.keys, key, "left")
-    n = np.where(inside, np.searchsorted(sweeps.keys, key, "right") - lo, 0)
-    start = 0
-    while start < len(pts):
-        csum = np.cumsum(n[start:])
-        stop = start + max(1, int(np.searchsorted(csum, PAIRS_PER_CHUNK)))
-        nn = n[start:stop]
-        pt = np.repeat(np.arange(start, stop), nn)
-        if pt.size:
-            cap = sweeps.cap[np.repeat(lo[start:stop] - np.cumsum(nn) + nn, nn) + np.arange(pt.size)]
-            a, b = sweeps.a[cap], sweeps.b[cap]
-            ab = b - a
-            L2 = np.einsum("ij,ij->i", ab, ab)
-            t = np.clip(np.einsum("ij,ij->i", pts[pt] - a, ab) / np.where(L2 > 0, L2, 1.0), 0.0, 1.0)
-            d = np.linalg.norm(pts[pt] - a - t[:, None] * ab, axis=1) - sweeps.r[cap]
-            first = np.cumsum(nn) - nn
-            has = nn > 0
-            out[start:stop][has] = np.minimum.reduceat(d, first[has])
-        start = stop
+    for start, stop, pt, cap, first, has in sweeps.pairs(pts[:, :2]):
+        a, b = sweeps.a[cap], sweeps.b[cap]
+        ab = b - a
+        L2 = np.einsum("ij,ij->i", ab, ab)
+        t = np.clip(np.einsum("ij,ij->i", pts[pt] - a, ab) / np.where(L2 > 0, L2, 1.0), 0.0, 1.0)
+        d = np.linalg.norm(pts[pt] - a - t[:, None] * ab, axis=1) - sweeps.r[cap]
+        out[start:stop][has] = np.minimum.reduceat(d, first[has])
     return out
