@@ -19,7 +19,7 @@ import yaml
 from stages.nc.moves import split_blocks
 from stages.nc.reader import parse_program
 from stages.thermal import fit_drift
-from tests.test_iterate import DEPTH, DQ, LEVELS, RC, R, YS, _run, _workflow
+from tests.test_iterate import DQ, LEVELS, RC, R, YS, _run, _workflow, cylinder_job
 
 AX, TAU = 65.0, 80.0        # µm, s: ≈ 50 µm after the ≈ 120 s job
 FEED = 40.0                 # mm/min: slow, so that the three levels take ≈ 1.5 τ
@@ -50,15 +50,9 @@ def _measurements(rng) -> dict:
 
 
 def test_the_fitted_drift_model_removes_nine_tenths_of_the_drift_error(tmp_path):
-    import trimesh
-
     from stages.virtual_machine import VirtualMachine
-    (tmp_path / "nc").mkdir()
     src = _program()
-    (tmp_path / "nc" / "cyl.nc").write_bytes(src)
-    stock = trimesh.creation.cylinder(radius=RC + DEPTH, height=4.0, sections=720)
-    stock.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
-    stock.export(tmp_path / "stock.stl")
+    cylinder_job(tmp_path, src)
     path = _workflow(tmp_path, max_iter=1)
     out = tmp_path / "out"
     _run(path)

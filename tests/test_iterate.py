@@ -115,13 +115,18 @@ def _virtual_machine_rms(stock, programs: dict) -> dict:
     return {name: float(np.sqrt(np.mean((probe(text, 1.0) - ideal) ** 2))) for name, text in programs.items()}
 
 
-def test_iterated_correction_through_the_engine(tmp_path):
-    (tmp_path / "nc").mkdir()
-    src = _program()
-    (tmp_path / "nc" / "cyl.nc").write_bytes(src)
+def cylinder_job(root, program: bytes) -> None:
+    """``root/nc/cyl.nc`` and the cylinder's stock ``root/stock.stl`` (DEPTH over RC, 4 mm long in Y)."""
+    (root / "nc").mkdir()
+    (root / "nc" / "cyl.nc").write_bytes(program)
     stock = trimesh.creation.cylinder(radius=RC + DEPTH, height=4.0, sections=720)
     stock.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
-    stock.export(tmp_path / "stock.stl")
+    stock.export(root / "stock.stl")
+
+
+def test_iterated_correction_through_the_engine(tmp_path):
+    src = _program()
+    cylinder_job(tmp_path, src)
     out = tmp_path / "out"
     check = tmp_path / "check"
     (check / "nc").mkdir(parents=True)
