@@ -11,9 +11,9 @@ import glob
 from pathlib import Path
 from typing import Literal, Optional, Union
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from pipeline.config_errors import read_yaml
 from stages.geometry.cutter import DEFAULT_FLUTES, DEFAULT_HELIX_DEG, DEFAULT_STICKOUT_MM
 
 
@@ -322,13 +322,7 @@ def load_workflow(path: str | Path, overlays=()) -> tuple[Workflow, Path]:
     bring in is reported against the overlay that gave it.
     """
     path = Path(path)
-    if not path.is_file():
-        raise WorkflowError(f"{path}: no such workflow file")
-    text = path.read_text()
-    try:
-        raw = yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        raise WorkflowError(f"{path}: not valid YAML: {e}") from None
+    raw, text = read_yaml(path, "workflow", WorkflowError)
     if not isinstance(raw, dict):
         raise WorkflowError(f"{path}: a workflow is a mapping of keys (DESIGN §4), got {type(raw).__name__}")
     read = []

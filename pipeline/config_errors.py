@@ -8,6 +8,18 @@ import yaml
 from pydantic import BaseModel, ValidationError
 
 
+def read_yaml(path: Path, what: str, error: type[Exception]) -> tuple[object, str]:
+    """The parsed document of the YAML file ``path`` and its text; ``error`` (naming the file and
+    ``what`` it should be) when it is missing or not YAML."""
+    if not path.is_file():
+        raise error(f"{path}: no such {what} file")
+    text = path.read_text()
+    try:
+        return yaml.safe_load(text), text
+    except yaml.YAMLError as e:
+        raise error(f"{path}: not valid YAML: {e}") from None
+
+
 def _yaml_lines(text: str) -> dict:
     """Line (1-based) of every key and list item of a YAML document, by key path."""
     lines: dict = {}

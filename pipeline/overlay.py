@@ -20,7 +20,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import yaml
+from pipeline.config_errors import read_yaml
 
 KEYED_LISTS = ("tool", "material")
 # top-level keys whose strings name files or folders (relative to the project in a workflow)
@@ -50,13 +50,7 @@ def read_overlay(path, root, file_keys) -> tuple[dict, str]:
         The file's text (for line numbers in error messages).
     """
     path = Path(path)
-    if not path.is_file():
-        raise OverlayError(f"{path}: no such overlay file")
-    text = path.read_text()
-    try:
-        raw = yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        raise OverlayError(f"{path}: not valid YAML: {e}") from None
+    raw, text = read_yaml(path, "overlay", OverlayError)
     if raw is None:
         raw = {}                                  # an empty overlay (nothing diagnosed) changes nothing
     if not isinstance(raw, dict):
