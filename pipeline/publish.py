@@ -40,7 +40,7 @@ def publish(run, reports: list, failures: list, wall_s: float) -> dict:
         else:
             stamp.unlink(missing_ok=True)
             report = report_mod.write_report(run.out, run.wf.name, nominal=nominal, kept=kept,
-                                             overlays=getattr(run, "overlays", []))
+                                             overlays=run.overlays)
             if report is not None:
                 stamp.write_text(key)
     except Exception as e:  # a picture never fails a run: the tables and programs are what it is for
@@ -71,7 +71,7 @@ def report_key(run, kept: dict) -> str:
     code = [hashlib.sha256(Path(m.__file__).read_bytes()).hexdigest() for m in (report_mod, deviation_map)]
     return digest({"tables": {p.program_id: sorted(final_tables(run, p).items()) for p in run.parts},
                    "failed": {p.program_id: p.failed for p in run.parts}, "kept": kept, "title": run.wf.name,
-                   "nominal": run.fingerprint("nominal"), "code": code, "overlay": getattr(run, "overlays", [])})
+                   "nominal": run.fingerprint("nominal"), "code": code, "overlay": run.overlays})
 
 
 def feed_summary(out: Path) -> dict:
@@ -219,7 +219,7 @@ def summarize(run, reports, failures, tables, wall_s) -> dict:
         n_passes = sum(pq.ParquetFile(p).metadata.num_rows for p in prog_dir.glob("*.parquet"))
     failed_ids = sorted({f["program_id"] for f in failures if f["program_id"] is not None})
     return {
-        "workflow": str(run.workflow_path), "overlay": list(getattr(run, "overlays", [])),
+        "workflow": str(run.workflow_path), "overlay": list(run.overlays),
         "name": run.wf.name, "output": str(run.out),
         "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "wall_s": round(wall_s, 3),
         "counts": {"programs": len(run.parts), "programs_ok": len(run.parts) - len(failed_ids),
