@@ -77,7 +77,9 @@ def thermal_fit_command(measurements, out_yaml, sources: int = 2) -> dict:
     data = read_table(measurements)
     cols = model_columns(data)
     n = len(data["time_s"])
-    params = sources + 3 * (1 + sources * (1 + len(cols["positions"])) + len(cols["temperatures"]))
+    # the time constants and every axis's linear coefficients
+    shape = DriftModel(np.ones(sources), positions=cols["positions"], temperatures=cols["temperatures"])
+    params = sources + 3 * len(shape.columns())
     if 3 * n < params + 1:
         raise InputError(f"{measurements}: {n} measurement lines give {3 * n} values, fewer than the model's "
                          f"{params} parameters + 1 (for the noise): measure more often or use fewer --sources")
