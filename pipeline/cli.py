@@ -31,12 +31,21 @@ def run(workflow, out, scheduler, workers, until, fresh, quiet, overlays):
     """Run WORKFLOW: only partitions not already in the cache are computed."""
     from pipeline.engine import Run
     from pipeline.graph import mould_graph
+    from pipeline.jobs import JobError, job_name, runner
     try:
-        r = Run(workflow, mould_graph(), out=out, until=until, fresh=fresh, overlays=overlays)
-        summary = r.execute(scheduler=scheduler, workers=workers, progress=not quiet)
-    except (WorkflowError, InputError) as e:
+        job = job_name(workflow)
+        if job != "mould":
+            mod = runner(job)
+            summary = mod.run(workflow, out=out, overlays=overlays, fresh=fresh, workers=workers, quiet=quiet)
+        else:
+            r = Run(workflow, mould_graph(), out=out, until=until, fresh=fresh, overlays=overlays)
+            summary = r.execute(scheduler=scheduler, workers=workers, progress=not quiet)
+    except (WorkflowError, InputError, JobError) as e:
         click.echo(f"error: {e}", err=True)
         sys.exit(2)
+    if job != "mould":
+        mod.echo_summary(summary)
+        sys.exit(1 if summary["failures"] else 0)
     _print_summary(summary)
     sys.exit(1 if summary["failures"] else 0)
 

@@ -211,6 +211,8 @@ class Box(_Strict):
 class Workflow(_Strict):
     """A workflow file (DESIGN §4)."""
 
+    job: Literal["mould"] = Field("mould", description="what `pipeline run` does (pipeline/jobs.py): `mould` "
+                                  "predicts and corrects NC programs; other jobs have their own keys")
     name: str = Field(description="job name, for reports")
     programs: Union[str, list[str]] = Field(description="NC programs: a glob, or an ordered list of files or globs")
     stock: Union[str, Box, None] = Field(None, description="the surface before the programs: a mesh (STL/OBJ/PLY) "

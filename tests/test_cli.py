@@ -60,3 +60,11 @@ def test_tool_profile_bad_image_names_the_file_and_writes_nothing(tmp_path):
                                   "--out", str(out)])
     assert r.exit_code == 2 and "t1_060deg.png" in r.output
     assert not out.exists()
+
+
+def test_run_names_an_unknown_job_with_its_line(tmp_path):
+    wf = tmp_path / "w.yaml"
+    wf.write_text("name: x\njob: turning\n")
+    r = CliRunner().invoke(main, ["run", str(wf)])
+    assert r.exit_code == 2
+    assert f"{wf}:2: job: unknown job 'turning'" in r.output
