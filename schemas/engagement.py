@@ -5,7 +5,10 @@ import pyarrow as pa
 # and rotation angles phi_j = (j + 0.5) * 360 / n_phi degrees, counter-clockwise from the feed
 # direction seen from above. mask = np.packbits of the boolean array E (n_z, n_phi), C order;
 # decode with stages.generating.unpack_engagement(row). feed_dir_x/y: unit horizontal feed direction;
-# ramp_deg: angle of the feed above the horizontal (+ climbing, - descending), which sets the chip.
+# ramp_deg: angle of the feed above the horizontal (+ climbing, - descending), which sets the chip;
+# chip_limit_mm: for a descending pass, quantiles over the engaged cells of the largest chip the
+# material ahead allows (its thickness over the envelope / sin of the descent: a plunge into a thin
+# cusp cuts only the cusp); the force takes the feed per tooth mean_i min(fz, L_i); null: level or climbing.
 SCHEMA = pa.schema([
     pa.field('program_id', pa.string()),
     pa.field('pass_id', pa.int32()),
@@ -16,4 +19,5 @@ SCHEMA = pa.schema([
     pa.field('feed_dir_x', pa.float64()),
     pa.field('feed_dir_y', pa.float64()),
     pa.field('ramp_deg', pa.float64()),
+    pa.field('chip_limit_mm', pa.list_(pa.float64())),
 ])

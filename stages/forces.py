@@ -2,7 +2,8 @@
 
 One row per row of the ``engagement`` table (the predicted passes). The cutting region (engagement
 grid) and the pass's feed per tooth fz = feed_mm_min / (spindle_rpm·flutes) drive the micro-edge
-model of :mod:`stages.cutting.forces`; forces are those **acting on the tool**, sampled at spindle
+model of :mod:`stages.cutting.forces` (the chip no thicker than the material ahead of a descending
+pass allows: the engagement's ``chip_limit_mm``); forces are those **acting on the tool**, sampled at spindle
 angles θ_i = i·360/n_rot (θ = 0: flute 0's tip end points along the feed; the spindle turns
 clockwise), rotated from the feed frame to the machine frame with the engagement row's feed
 direction. Ramps (the engagement row's ``ramp_deg``) change the chip.
@@ -16,10 +17,11 @@ from stages import InputError
 from stages.cutting.forces import (
     COEFF_NAMES, DEFAULT_N_ROT, cutting_forces_packed, feed_per_tooth_mm, rotation_grid_deg)
 from stages.geometry.cutter import Cutter
+from stages.surface.engagement import effective_feed_per_tooth
 from stages.tables import binary_rows, list_column, match_passes, pick_entry, program_tool_number, task_count
 
 NAME = "forces"
-VERSION = "2"
+VERSION = "3"
 INPUTS = ("passes", "generating", "engagement")
 OUTPUTS = ("forces",)
 PARAMS = ("tool", "material")
@@ -75,6 +77,14 @@ def run(inputs: dict, params: dict, shard: tuple[int, int] | None = None) -> dic
     if not np.all(np.isfinite(ramp)) or np.any(np.abs(ramp) > 90.0):
         b = int(np.argmax(~np.isfinite(ramp) | (np.abs(ramp) > 90.0)))
         raise InputError(f"engagement: pass {pass_ids[b]} has ramp_deg {ramp[b]!r} (needs -90 … 90)")
+    # a descent into material thinner than the feed per tooth cuts only that material per tooth
+    chip = fz
+    if "chip_limit_mm" in engagement.column_names:
+        lim = engagement.column("chip_limit_mm").to_pylist()
+        width = max((len(v) for v in lim if v), default=0)
+        limits = np.array([v if v else [np.nan] * width for v in lim], float).reshape(len(lim), width)
+        chip = effective_feed_per_tooth(fz, limits)
+        chip = np.where(chip > 0, chip, fz)          # no material in the footprint: the grid has no chip either
     n_z = engagement.column("n_z").to_numpy()
     n_phi = engagement.column("n_phi").to_numpy()
     packed, lengths = binary_rows(engagement.column("mask"))
@@ -93,7 +103,7 @@ def run(inputs: dict, params: dict, shard: tuple[int, int] | None = None) -> dic
                              f"grid {int(g_nz)}×{int(g_nphi)} (needs dz_mm > 0 and ceil(n_z·n_phi/8) = {n_bytes} bytes)")
         rows_bytes = packed[sel] if isinstance(packed, np.ndarray) else np.stack([packed[i] for i in sel])
         f_g = cutting_forces_packed(rows_bytes, int(g_nz), int(g_nphi), float(g_dz),
-                                    fz[sel], cutter, coeffs, theta, ramp[sel])
+                                    chip[sel], cutter, coeffs, theta, ramp[sel])
         if len(uniq) == 1:
             forces_feed = f_g                   # one grid for the program (the usual case): no copy
         else:

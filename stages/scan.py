@@ -25,13 +25,13 @@ from stages.geometry.cutter import Cutter
 from stages.geometry.passes import pass_geometry
 from stages.geometry.workpiece import load_design_surface, load_workpiece
 from stages.render import make_renderer
-from stages.surface.engagement import N_PHI, ramp_deg
+from stages.surface.engagement import N_PHI, chip_limit, ramp_deg
 from stages.surface.program import CUT_COLUMNS, scan_program
 from stages.surface.strip import GEN_COLUMNS
 from stages.tables import task_count
 
 NAME = "scan"
-VERSION = "3"
+VERSION = "4"
 INPUTS = ("passes", "passes@earlier", "stock", "nominal")
 OUTPUTS = ("cut_filter", "angle_prune", "generating", "engagement")
 PARAMS = ("tool", "render", "prune", "feed")
@@ -84,10 +84,14 @@ def tables(pg, res: dict) -> dict:
                   **{c: pa.array(np.asarray(gen.get(c, np.zeros(0)), np.int64), pa.int32()) for c in ("n_px", "n2_px")},
                   "view": pa.array(list(gen.get("view", [])), pa.string())})
     feed = np.radians(pg.feed_deg[pred])
+    ramp = ramp_deg(pg.p1[pred] - pg.p0[pred])
+    limit = chip_limit(res["depth"], ramp)
     e = pa.table({"program_id": gprog, "pass_id": gpid, "dz_mm": np.full(m, res["dz"]),
                   "n_z": pa.array(res["n_z"], pa.int32()), "n_phi": pa.array(np.full(m, N_PHI), pa.int32()),
                   "mask": pa.array(res["masks"], pa.binary()), "feed_dir_x": np.cos(feed), "feed_dir_y": np.sin(feed),
-                  "ramp_deg": pa.array(ramp_deg(pg.p1[pred] - pg.p0[pred]), pa.float64())})
+                  "ramp_deg": pa.array(ramp, pa.float64()),
+                  "chip_limit_mm": pa.array([None if np.isnan(r).all() else r.tolist() for r in limit],
+                                            pa.list_(pa.float64()))})
     out = {"cut_filter": cf, "angle_prune": apt, "generating": g, "engagement": e}
     return {name: schemas.check(name, _sorted(t)) for name, t in out.items()}
 

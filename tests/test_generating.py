@@ -604,3 +604,29 @@ def test_a_ball_in_a_fillet_of_its_own_radius_has_one_contact(tmp_path):
     print(f"\n{g['view']} {g['n_px']} px, q {g['contact_deg']:.1f}, second {g['n2_px']} px")
     assert g["view"] != "none"
     assert g["n2_px"] == 0 and np.isnan(g["contact2_deg"])
+
+
+@pytest.mark.parametrize("layer", [0.1, 0.3])
+def test_a_plunge_into_a_thin_layer_cuts_only_that_layer_per_tooth(layer):
+    """A ball plunging 2 mm through air into a flat box by ``layer`` T < fz: a tooth cuts at most
+    the material over its edge (the material ahead along the feed ends there), T − R(1 − cos κ) at
+    the contact angle κ, so the axial force is N·R·∫₀^κT [(Krc cos²κ − Kac sin κ cos κ)(T − R(1 − cos κ))
+    + Kre cos κ − Kae sin κ] dκ (cos κ_T = 1 − T/R), whatever the feed."""
+    from scipy.integrate import quad
+    from stages import forces as forces_stage
+    R, N, T = 5.0, 2, layer
+    tool = {"type": "ball", "diameter_mm": 10.0, "flutes": N, "helix_deg": 0.0, "stickout_mm": 30.0}
+    c = {"ktc": 2000.0, "krc": 700.0, "kac": 300.0, "kte": 20.0, "kre": 15.0, "kae": 5.0}
+    passes = passes_table("plunge", [(0.0, 0.0, 2.0)], [(0.0, 0.0, -T)])
+    eng = predict_at(passes, {"box": [-30, -30, -10, 30, 30, 0]}, tool, {0: (0.0, 0.0, -T)}, px_per_mm=40.0)["engagement"]
+    assert eng.column("ramp_deg")[0].as_py() == pytest.approx(-90.0)
+    assert max(eng.column("chip_limit_mm")[0].as_py()) == pytest.approx(T, abs=0.03)
+
+    def dfz(k):
+        h = T - R * (1 - np.cos(k))
+        return (c["krc"] * np.cos(k) ** 2 - c["kac"] * np.sin(k) * np.cos(k)) * h + c["kre"] * np.cos(k) - c["kae"] * np.sin(k)
+    want = N * R * quad(dfz, 0.0, np.arccos(1 - T / R))[0]
+    for fz in (0.5, 1.0):
+        p = passes.set_column(passes.schema.get_field_index("feed_mm_min"), "feed_mm_min", pa.array([fz * N * 1000.0]))
+        f = forces_stage.run({"passes": p, "generating": None, "engagement": eng}, {"tool": tool, "material": {"name": "m", **c}})
+        assert np.mean(f["forces"].column("fz_n")[0].as_py()) == pytest.approx(want, rel=0.1)

@@ -26,6 +26,7 @@ N_PHI = 360                 # rotation-angle bins
 DZ_PER_RADIUS = 1.0 / 180   # level spacing in tool radii
 TRAIL_TURN_DEG = 15.0       # the own trailing path within a radius that turns less than this is left out
 CHUNK = 64                  # predictions at a time (bounds the gathered cuts and the grids)
+DEPTH_QUANTILES = 8         # quantiles of the material over the engaged cells (a descent's chip limit)
 
 
 def unpack_engagement(row):
@@ -143,12 +144,16 @@ def engagement(ts: TileScan, pg: PassGeometry, cutter: Cutter, pred: np.ndarray,
     -------
     n_z : (m,) levels of each grid (up to its highest engaged level; at least one)
     masks : list of packed grids (``np.packbits`` of E (n_z, n_phi), C order), one bytes per prediction
+    depth : (m, DEPTH_QUANTILES) quantiles over the engaged cells (before the steep side's closed
+        form) of the material's thickness over the cell's envelope point, vertically (mm; 0 where
+        none): a pass descending at α cuts at most depth / sin|α| per tooth there (:func:`chip_limit`)
     """
     m = len(pred)
     n_z = np.ones(m, np.int64)
     masks = [b""] * m
+    depth = np.zeros((m, DEPTH_QUANTILES))
     if m == 0:
-        return n_z, masks
+        return n_z, masks, depth
     ident, pix, _, before = before_cuts(ts)
     cuts = CutsByPixel(pix, ident, ts.tile.view.shape) if stock_top is not None else None
     view = ts.tile.view
@@ -199,7 +204,7 @@ def engagement(ts: TileScan, pg: PassGeometry, cutter: Cutter, pred: np.ndarray,
                                                               nan=rc) / dz - 0.5).astype(np.int64))
         lev_hi = np.minimum(lev_hi, top_lev)
         ok = lev_hi >= lev_lo
-        row, dx, dy, rho, lev_lo, lev_hi = row[ok], dx[ok], dy[ok], rho[ok], lev_lo[ok], lev_hi[ok]
+        row, dx, dy, rho, lev_lo, lev_hi, top = row[ok], dx[ok], dy[ok], rho[ok], lev_lo[ok], lev_hi[ok], top[ok]
         phi = np.mod(np.degrees(np.arctan2(dy, dx) - feed[k[row]]), 360.0)
         hw = np.degrees(np.minimum(hp / np.maximum(rho, 1e-9), np.pi))
         b_lo = np.floor((phi - hw) / binw).astype(np.int64)
@@ -212,6 +217,11 @@ def engagement(ts: TileScan, pg: PassGeometry, cutter: Cutter, pred: np.ndarray,
         lev = lev_lo[r2] + off // nb[r2]
         b = np.mod(b_lo[r2] + off % nb[r2], n_phi)
         who = row[r2]
+        if lev.size:                                      # a cell's share of a descent's chip: ds·cos κ
+            n_lev = int(lev.max()) + 1
+            _, kappa = cutter.immersion((np.arange(n_lev) + 0.5) * dz)
+            share = np.diff(cutter.generator_length(np.arange(n_lev + 1) * dz)) * np.cos(kappa)
+            depth[a:a + len(k)] = _cell_quantiles(who, lev, b, n_phi, top[r2] - (lev + 0.5) * dz, share[lev], len(k))
         if stock_top is not None:                         # claim 6: the steep side in closed form
             top_lev = int(lev.max(initial=0)) + 1
             u = np.unique((who * top_lev + lev) * n_phi + b)
@@ -222,7 +232,59 @@ def engagement(ts: TileScan, pg: PassGeometry, cutter: Cutter, pred: np.ndarray,
         np.maximum.at(n_lev, who, lev + 1)
         n_z[a:a + len(k)] = n_lev
         masks[a:a + len(k)] = pack_grids(who, lev * n_phi + b, n_lev * n_phi)
-    return n_z, masks
+    return n_z, masks, depth
+
+
+def _cell_quantiles(group, lev, b, n_phi: int, value, weight, m: int) -> np.ndarray:
+    """(m, DEPTH_QUANTILES): per group, the weighted quantiles at probabilities (i + ½)/DEPTH_QUANTILES
+    of the cells' values (a cell several pixels fill counts once, with its largest value; zeros for
+    a group without weight)."""
+    out = np.zeros((m, DEPTH_QUANTILES))
+    if group.size == 0:
+        return out
+    key = (group * (int(lev.max()) + 1) + lev) * n_phi + b
+    o = np.lexsort((-value, key))
+    first = np.r_[True, key[o][1:] != key[o][:-1]]
+    group, value, weight = group[o][first], np.maximum(value[o][first], 0.0), weight[o][first]
+    o = np.lexsort((value, group))
+    group, value, weight = group[o], value[o], np.maximum(weight[o], 0.0)
+    total = np.bincount(group, weight, minlength=m)
+    has = np.flatnonzero(total > 0)
+    cum = np.cumsum(weight)
+    before = np.r_[0.0, cum][np.searchsorted(group, np.arange(m))]      # weight of the earlier groups
+    pos = group + np.where(total[group] > 0, (cum - before[group]) / np.where(total[group] > 0, total[group], 1.0), 0.0)
+    q = (np.arange(DEPTH_QUANTILES) + 0.5) / DEPTH_QUANTILES
+    idx = np.searchsorted(pos, has[:, None] + q[None, :], side="left")
+    out[has] = value[np.minimum(idx, len(value) - 1)]
+    return out
+
+
+def chip_limit(depth_mm, ramp):
+    """The largest chip the material allows a descending pass, per footprint quantile (NaN: none).
+
+    A tooth removes the material between its edge and the surface the tooth before it left, fz
+    back along the feed v. Going back along v from an envelope point of a pass that descends at
+    α climbs s·sin|α| in s; where the material over the envelope is only ``depth`` thick (a plunge
+    into the cusp of the previous row), the chip there ends at s = depth / sin|α| whatever the
+    feed. The micro-edge force is a sum over the engaged cells, so with the limits L_i of the
+    cells' quantiles it is taken as that of the feed per tooth mean_i min(fz, L_i)
+    (:func:`effective_feed_per_tooth`). Level and climbing passes get NaN.
+    """
+    depth = np.asarray(depth_mm, float)
+    s = np.sin(np.radians(-np.asarray(ramp, float)))[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(s > 1e-9, depth / s, np.nan)
+
+
+def effective_feed_per_tooth(fz, limits) -> np.ndarray:
+    """mean_i min(fz, L_i) per pass: the feed per tooth whose chip the material ahead allows
+    (``limits`` (P, Q) from :func:`chip_limit`; a row of NaN keeps fz)."""
+    fz = np.asarray(fz, float)
+    lim = np.asarray(limits, float).reshape(len(fz), -1)
+    if lim.shape[1] == 0:
+        return fz
+    capped = np.minimum(fz[:, None], np.nan_to_num(lim, nan=np.inf)).mean(axis=1)
+    return np.where(np.all(np.isnan(lim), axis=1), fz, capped)
 
 
 def pack_grids(grid: np.ndarray, cell: np.ndarray, size: np.ndarray) -> list[bytes]:

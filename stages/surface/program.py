@@ -10,7 +10,7 @@ from stages.geometry.passes import PassGeometry
 from stages.geometry.workpiece import Workpiece
 from stages.surface.chain import ChainedStock, Earlier
 from stages.surface.cut_passes import cut_columns
-from stages.surface.engagement import DZ_PER_RADIUS, N_PHI, TRAIL_TURN_DEG, engagement, snapshot_from
+from stages.surface.engagement import DEPTH_QUANTILES, DZ_PER_RADIUS, N_PHI, TRAIL_TURN_DEG, engagement, snapshot_from
 from stages.surface.ordered import scan_tile, surface_stats
 from stages.surface.strip import GEN_COLUMNS, STEEP_DEG, generating_points
 from stages.surface.tiles import cutting_candidates, fine_tolerance, tiles
@@ -48,7 +48,7 @@ def scan_program(pg: PassGeometry, cutter: Cutter, wp: Workpiece, renderer, px_p
     stock = ChainedStock(wp.top, before) if before else wp.top
     dz = cutter.radius_mm * DZ_PER_RADIUS
     out = {"passes": [], "cut_filter": [], "angle_prune": [], "predicted": [], "generating": [], "n_z": [],
-           "masks": []}
+           "masks": [], "depth": []}
     for tile in tiles(pg, cutter, wp, px_per_mm, strips=strips, strip=strip):
         ts = scan_tile(tile, pg, wp, mesh, renderer, earlier=before)
         px, sq = surface_stats(ts, len(pg.pass_id))
@@ -70,9 +70,9 @@ def scan_program(pg: PassGeometry, cutter: Cutter, wp: Workpiece, renderer, px_p
         s_tip = pg.s0[pred] + np.linalg.norm(tips - pg.p0[pred], axis=1)
         gen = generating_points(ts, pg, cutter, pred, tips, mesh.tol_mm, design, steep_deg)
         snap = snapshot_from(pg, pred, s_tip, cutter.radius_mm, TRAIL_TURN_DEG)
-        n_z, masks = engagement(ts, pg, cutter, pred, tips, snap, dz, N_PHI, margin=mesh.tol_mm, stock_top=stock)
+        n_z, masks, depth = engagement(ts, pg, cutter, pred, tips, snap, dz, N_PHI, margin=mesh.tol_mm, stock_top=stock)
         for key, v in (("passes", k), ("cut_filter", cf), ("angle_prune", ap), ("predicted", pred),
-                       ("generating", gen), ("n_z", n_z), ("masks", masks)):
+                       ("generating", gen), ("n_z", n_z), ("masks", masks), ("depth", depth)):
             out[key].append(v)
     if strip in (None, 0):                # the passes no tile owns (rapids, moves off the stock) do not cut
         rest = np.setdiff1d(np.arange(len(pg.pass_id)), cutting_candidates(pg, cutter, wp))
@@ -90,7 +90,8 @@ def scan_program(pg: PassGeometry, cutter: Cutter, wp: Workpiece, renderer, px_p
             "predicted": _cat(out["predicted"]).astype(np.int64),
             "generating": {c: _cat([d[c] for d in out["generating"]]) for c in
                            (*GEN_COLUMNS, "n_px", "n2_px", "view")} if out["generating"] else None,
-            "n_z": _cat(out["n_z"]).astype(np.int64), "masks": [b for m in out["masks"] for b in m], "dz": dz}
+            "n_z": _cat(out["n_z"]).astype(np.int64), "masks": [b for m in out["masks"] for b in m], "dz": dz,
+            "depth": np.concatenate(out["depth"]) if out["depth"] else np.zeros((0, DEPTH_QUANTILES))}
 
 
 def _cat(parts):
