@@ -4,8 +4,8 @@ One round of vertex moves (:func:`stages.correction.rounds.correct_once`). Predi
 to the path they were made for, so every round applies its move to the ORIGINAL program (``blocks``,
 ``passes@first``): the command that leaves the original surface is the fixed point P = P0 − e(P)·n
 (seed 003's iterative derivation). A pass this round did not predict keeps its round-1 error
-(``errors@first``). ``generating@first`` (the original program's surfaces) and the tool drive the
-gouge limit. The stage graph repeats the chain from ``correct_blocks`` to here until
+(``errors@first``). ``generating@first`` (the original program's surfaces), the ``nominal`` model
+(the surfaces the job's other programs finish) and the tool drive the gouge limit. The stage graph repeats the chain from ``correct_blocks`` to here until
 :func:`converged`.
 
 With a ``drift:`` section every vertex also gets the thermal drift compensation
@@ -21,12 +21,13 @@ import pyarrow as pa
 
 from stages.correction.rounds import correct_once, errors_on_passes, match_passes, pass_midpoints, with_missing_from
 from stages.geometry.cutter import Cutter
+from stages.geometry.workpiece import load_design_surface
 from stages.tables import col, pick_entry, program_tool_number, xyz
 
 NAME = "correct"
-VERSION = "17"
+VERSION = "18"
 INPUTS = ("blocks@first", "passes@first", "passes", "errors", "errors@first", "generating@first", "corrected@previous",
-          "passes@earlier")
+          "passes@earlier", "nominal")
 OUTPUTS = ("corrected",)
 # tol_um and max_iter steer the rounds and ln_normals / comp_table the writer: changing them re-uses
 # every cached round
@@ -44,7 +45,8 @@ def run(inputs: dict, params: dict) -> dict[str, pa.Table]:
         cutter = Cutter.from_params(pick_entry(params["tool"], program_tool_number(passes), "tool"))
     corrected = correct_once(inputs["blocks@first"], passes, errors, params,
                              previous=inputs.get("corrected@previous"), relax=float(opts.get("relax", 1.0)),
-                             generating=inputs.get("generating@first"), tool_shape=cutter)
+                             generating=inputs.get("generating@first"), tool_shape=cutter,
+                             design=load_design_surface(inputs.get("nominal")) if cutter is not None else None)
     if params.get("drift") and corrected.num_rows:
         corrected = _with_drift_columns(corrected, passes, inputs.get("passes@earlier"), params["drift"])
     return {"corrected": corrected}

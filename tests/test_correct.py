@@ -344,6 +344,38 @@ def test_stage_limits_the_corner_vertex_by_the_wall_pass_generating_point():
         assert out.column("gouge_limit_um")[row].as_py() == pytest.approx(400.0 if limit else 0.0, abs=0.01)
 
 
+def test_the_nominal_limits_the_move_into_a_wall_no_pass_of_the_program_finishes(tmp_path):
+    """The corner above without the wall pass (a later program of the job finishes the wall): the
+    nominal model (floor z 0, wall x 10) stands in for it. The shank's side is 0.1 mm from the wall,
+    so the vertex moves 100 µm along +x (within the samples' spacing: the nearest sample off y 0 by
+    δ allows 0.1 + δ²/10 mm), not the 300 µm move limit."""
+    import trimesh
+    from stages import correct
+    text = b"\n".join([b"%", b"O0001", b"G90 G17 G21", b"T1 M6", b"S8000 M3", b"G0 X0. Y0. Z10.",
+                       b"G1 Z0. F500", b"X4.9", b"Y2.", b"G0 Z50.", b"M30", b"%", b""])
+    blocks, _ = parse_program(text, "corner.nc", "p")
+    passes = split_blocks(blocks, SPLIT)
+    x0, x1, z1 = (passes.column(c).to_numpy() for c in ("x0_mm", "x1_mm", "z1_mm"))
+    floor = np.flatnonzero((x0 == 0.0) & (x1 == 4.9) & (z1 == 0.0))[0]
+    normals = np.tile([0.0, 0.0, 1.0], (passes.num_rows, 1))
+    err = np.zeros(passes.num_rows)
+    normals[floor + 1], err[floor + 1] = [0.6, 0.0, 0.8], -300.0
+    v = [[-20, -20, 0], [10, -20, 0], [10, 20, 0], [-20, 20, 0], [10, -20, 20], [10, 20, 20]]
+    nominal = trimesh.Trimesh(v, [[0, 1, 2], [0, 2, 3], [1, 4, 5], [1, 5, 2]], process=False)
+    assert np.allclose(nominal.face_normals, [[0, 0, 1], [0, 0, 1], [-1, 0, 0], [-1, 0, 0]])
+    nominal.export(tmp_path / "nominal.stl")
+    inputs = stage_inputs(blocks, passes, errors_table(passes, err, normals), generating=None)
+    tool = {"type": "ball", "diameter_mm": 10.0, "stickout_mm": 40.0}
+    vertex = int(passes.column("block_end").to_numpy()[floor])
+    row = None
+    for nominal_file, lo, hi in ((None, 299.99, 300.01), (str(tmp_path / "nominal.stl"), 99.0, 103.0)):
+        out = correct.run({**inputs, "nominal": nominal_file},
+                          {"correct": {"max_move_um": 300.0}, "tool": tool})["corrected"]
+        row = int(np.flatnonzero(out.column("block_no").to_numpy() == vertex)[0])
+        dx = (out.column("x_new_mm")[row].as_py() - 4.9) * 1000.0
+        assert lo <= dx <= hi
+
+
 def test_normals_a_few_degrees_apart_do_not_slide_the_vertex_along_a_straight_path():
     """The sample's row y 61.2 down a convex profile: passes 8610 and 8611 (normals 4.8° apart in
     the plane of the path, −154.8 and −129.8 µm; the path turns 4.7° at the vertex). Realising both

@@ -81,7 +81,7 @@ def _errors_per_pass(passes: pa.Table, errors: pa.Table):
 
 def _generating_points(generating: pa.Table, passes: pa.Table):
     """Generating points (mm), unit normals and pass index (into ``passes`` sorted by pass id)."""
-    if generating.num_rows == 0 or passes.num_rows == 0:
+    if generating is None or generating.num_rows == 0 or passes.num_rows == 0:
         return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64)
     xyz = _xyz(generating, ("gen_x_mm", "gen_y_mm", "gen_z_mm"))
     n = _xyz(generating, ("nx", "ny", "nz"))
@@ -107,7 +107,7 @@ def _normal_tol(p: dict) -> float:
 
 def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: dict,
                  previous: pa.Table | None = None, relax: float | None = None,
-                 generating: pa.Table | None = None, tool_shape=None) -> pa.Table:
+                 generating: pa.Table | None = None, tool_shape=None, design=None) -> pa.Table:
     """One correction round: move every NC vertex of ``blocks`` against ``errors``.
 
     Parameters
@@ -128,6 +128,9 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
     generating, tool_shape : the ``generating`` table of the ORIGINAL program's passes and the
         tool (:class:`Cutter`): with both, moves are limited so that the tool
         does not cut into the surface other passes generate (:func:`gouge_limit`); else unlimited
+    design : the nominal model (:class:`stages.geometry.workpiece.DesignSurface`) or None: its
+        samples near the program limit the moves too, as the surfaces of passes of no program
+        here (the corners a later program of the job finishes)
 
     Returns
     -------
@@ -220,8 +223,14 @@ def correct_once(blocks: pa.Table, passes: pa.Table, errors: pa.Table, params: d
         stale = np.linalg.norm(vnormal, axis=1) <= 1e-12
         total_um[stale] = (last[stale] - orig[stale]) * 1000.0
     gouge_um = np.zeros(nb)
-    if n_pass and generating is not None and tool_shape is not None:
+    if n_pass and tool_shape is not None and (generating is not None or design is not None):
         gen_xyz, gen_n, gen_pass = _generating_points(generating, passes)
+        if design is not None:
+            reach = tool_shape.radius_mm + max_move / 1000.0
+            tips = orig - frame
+            d_xyz, d_n = design.samples(tips.min(axis=0) - reach, tips.max(axis=0) + reach + [0, 0, tool_shape.stickout_mm])
+            gen_xyz, gen_n = np.concatenate([gen_xyz, d_xyz]), np.concatenate([gen_n, d_n])
+            gen_pass = np.concatenate([gen_pass, np.full(len(d_xyz), -2, np.int64)])   # no vertex's own pass
         total_um, gouge_um = gouge_limit(total_um, orig - frame, own, own_normals, gen_xyz, gen_n,
                                          gen_pass, tool_shape)
     size = np.linalg.norm(total_um, axis=1)

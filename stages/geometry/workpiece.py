@@ -147,6 +147,13 @@ class DesignSurface:
     def distance(self, points) -> np.ndarray:
         return self._closest(points)[0]
 
+    def samples(self, lo=None, hi=None) -> tuple[np.ndarray, np.ndarray]:
+        """The surface samples (about ``spacing_mm`` apart) and their faces' unit normals, those
+        within the box ``lo`` … ``hi`` (mm) when given."""
+        pts = self._tree.data
+        keep = np.ones(len(pts), bool) if lo is None else np.all((pts >= lo) & (pts <= hi), axis=1)
+        return np.asarray(pts[keep]), self._normals[self._face[keep]]
+
     def signed_distance(self, points) -> np.ndarray:
         """:meth:`distance`, negative inside the material (behind the nearest face's normal)."""
         points = np.asarray(points, float).reshape(-1, 3)
