@@ -9,7 +9,6 @@ from pathlib import Path
 from typing import Literal, Optional
 
 from pydantic import Field, ValidationError, field_validator
-from pydantic_core import InitErrorDetails, PydanticCustomError
 
 from pipeline.config import WorkflowError, _blame, _Strict, resolve
 from pipeline.config_errors import format_error, read_yaml
@@ -152,8 +151,9 @@ def load_polygon(path, overlays=()) -> tuple[PolygonWorkflow, Path]:
         wf = PolygonWorkflow.model_validate(raw)
         probs = _problems(wf)
         if probs:
+            # as pydantic's own errors, so format_error gives them the file, line and key
             raise ValidationError.from_exception_data("PolygonWorkflow", [
-                InitErrorDetails(type=PydanticCustomError("polygon", msg), loc=loc, input=val)
+                {"type": "value_error", "loc": loc, "input": val, "ctx": {"error": ValueError(msg)}}
                 for loc, msg, val in probs])
     except ValidationError as e:
         where, where_text = _blame(path, text, read, e)      # the overlay that set the bad key, if one did

@@ -226,7 +226,7 @@ def _workflow(tmp_path, **over):
 @pytest.mark.parametrize("key,value,says", [
     ("cutter.rpm", 0, "cutter.rpm: Value error, the cutter must turn"),
     ("workpiece.rpm", 0, "workpiece.rpm: Value error, the workpiece must turn"),
-    ("cutter.eccentricity_mm", 12.285, "cutter.eccentricity_mm: the edges never reach the bar"),
+    ("cutter.eccentricity_mm", 12.285, "cutter.eccentricity_mm: Value error, the edges never reach the bar"),
     ("feed.mm", -0.04, "feed.mm: Input should be greater than 0"),
 ])
 def test_bad_input_names_the_file_line_and_key_and_writes_nothing(tmp_path, key, value, says):
