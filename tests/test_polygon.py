@@ -147,14 +147,14 @@ def _twist(ratio, feed=0.01, wrpm=1000.0, length=1.0):
 
 @pytest.mark.parametrize("ratio", [2.001, 1.999])
 def test_ratio_2_plus_delta_turns_the_faces_180_delta_per_workpiece_revolution(ratio):
-    """Seed Fig. 19 (¶0127-0129): 1.999 and 2.001 twist in opposite directions."""
+    """Seed Fig. 19 (¶0129-0132): 1.999 and 2.001 twist in opposite directions."""
     tw, s = _twist(ratio)
     per_rev = tw * s.feed_per_workpiece_mm                    # degrees per workpiece revolution
     assert per_rev == pytest.approx(180 * (ratio - 2), rel=0.01)
 
 
 def test_opposite_rotations_flip_the_twist():
-    """Seed ¶0114, Fig. 20: with the workpiece turned the other way the twist of 2.001 reverses; only
+    """Seed ¶0112, ¶0137 (Fig. 20): with the workpiece turned the other way the twist of 2.001 reverses; only
     the workpiece's sense and |ω2/ω1| place the faces, so reversing the cutter alone changes the
     section (a lens) but not the handedness (docs/polygon.md)."""
     same, _ = _twist(2.001)
@@ -165,7 +165,7 @@ def test_opposite_rotations_flip_the_twist():
 
 
 def test_slower_feed_twists_more():
-    """Seed ¶0145 (Figs. 21-23): twist per mm ∝ 1/feed."""
+    """Seed ¶0126, ¶0145 (Figs. 21-23): twist per mm ∝ 1/feed (¶0113 says the opposite; docs/polygon.md)."""
     fast, _ = _twist(2.001, feed=0.02)
     slow, _ = _twist(2.001, feed=0.01)
     assert slow == pytest.approx(2 * fast, rel=0.01)
