@@ -17,8 +17,9 @@ from fractions import Fraction
 
 import numpy as np
 
-# samples of one passage at most (a cutter radius within µm of ε needs more for the finest grids)
-MAX_SAMPLES = 4_000_000
+# samples of one passage at most; where the polar angle then jumps bins (R within ~0.1 mm of ε at
+# the finest grids) the bins between are filled by linear interpolation
+MAX_SAMPLES = 1_000_000
 
 
 @dataclass(frozen=True)
@@ -129,8 +130,9 @@ def event_profile(setup: Setup, h: float) -> Profile:
     """The cut one edge passage leaves, binned at ``h`` radians of polar angle.
 
     The passage is sampled uniformly in cutter angle, finely enough that the polar angle moves at
-    most h/2 between samples (its rate is at most |w| + R/|R - ε|, at a = π), so every bin between
-    the passage's ends holds a sample.
+    most h/2 between samples (its rate is at most |w| + R/|R - ε|, at a = π) up to ``MAX_SAMPLES``;
+    consecutive samples further apart are joined by linear interpolation in θ, so every bin between
+    the passage's ends holds a value.
     """
     a0 = engagement_half_angle(setup)
     if a0 <= 0:
@@ -143,7 +145,7 @@ def event_profile(setup: Setup, h: float) -> Profile:
     r = np.hypot(x, y)
     theta = np.unwrap(np.arctan2(y, x))
     inside = r <= setup.workpiece_radius_mm
-    theta, r, z = theta[inside], r[inside], z[inside]
+    theta, r, z = _fill(theta[inside], r[inside], z[inside], h)
     if theta.size == 0:
         return Profile(0.0, h, np.full(0, np.inf), np.zeros(0))
     t0 = float(theta.min())
@@ -156,6 +158,18 @@ def event_profile(setup: Setup, h: float) -> Profile:
     dz = np.zeros_like(rb)
     dz[first[0]] = z[order[first[1]]]
     return Profile(t0, h, rb, dz)
+
+
+def _fill(theta, r, z, h):
+    """The samples with points interpolated linearly between consecutive samples more than h/2
+    apart in θ (k - 1 points where k half-bins are crossed)."""
+    if theta.size < 2:
+        return theta, r, z
+    k = np.maximum(1, np.ceil(np.abs(np.diff(theta)) / (0.5 * h)).astype(np.int64))
+    seg = np.repeat(np.arange(k.size), k)
+    frac = (np.arange(k.sum()) - np.repeat(np.cumsum(k) - k, k)) / np.repeat(k, k)
+    out = [np.append(v[:-1][seg] + frac * np.diff(v)[seg], v[-1]) for v in (theta, r, z)]
+    return out[0], out[1], out[2]
 
 
 def passages(setup: Setup, profile: Profile, z_lo: float, z_hi: float) -> np.ndarray:
