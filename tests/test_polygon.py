@@ -111,6 +111,18 @@ def test_ratio_2_opposite_directions_a_lens():
     assert rc_flat > 20 * rc_lens                                # (R+ε)²/(R-ε) = 183 mm: nearly flat
 
 
+def test_axis_outside_the_tool_path_cuts_concave_faces():
+    """Seed ¶0073-0075 (Fig. 11): R < ε, ratio 4: four arcs cut into the bar, 90° apart. The tip is nearest
+    the axis, at ε - R, pointing away from it: faces at -180°/ρ - 360°k/ρ, hollow with the same radius of
+    curvature (ε + (ρ-1)R)² / |ε - (ρ-1)²R| (24.0 mm), its centre now beyond the face."""
+    g = make_grid(0.2, 0.05, 0.05)
+    r = height_map(bar(4.0, R=10.0, e=13.0, length=0.2), g)[2]
+    assert np.sort(faces_deg(r, g)).tolist() == [45.0, 135.0, 225.0, 315.0]
+    assert r.min() == pytest.approx(3.0, abs=1e-4)
+    rc = _face_radius_of_curvature(r, g, 45.0, 1.0)
+    assert -rc == pytest.approx((13.0 + 3 * 10.0) ** 2 / (9 * 10.0 - 13.0), rel=0.03)
+
+
 # the seed's Example 4 (¶0150: ratios 2.2 … 3) and the 7-gon speed pairs of ¶0151 (cutter:workpiece rpm)
 SEED_POLYGONS = [(2200, 1000, 11), (2400, 1000, 12), (2500, 1000, 5), (2600, 1000, 13), (2800, 1000, 14),
                  (3000, 1000, 3), (1750, 1000, 7), (7000, 1000, 7), (1400, 1000, 7), (3500, 1000, 7)]
