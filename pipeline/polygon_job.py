@@ -76,7 +76,7 @@ def write_report(path: Path, wf: PolygonWorkflow, summ: dict) -> None:
     rows = [("speed ratio ω2/ω1", f"{summ['ratio']:.6g} ({summ['ratio_pq']})"),
             ("sides", f"{summ['sides']} (sections: {summ['sides_range'][0]}–{summ['sides_range'][1]}; "
                       f"p/q rule: {summ['sides_rule']})"),
-            ("twist", "—" if summ["twist_deg_per_mm"] is None else f"{summ['twist_deg_per_mm']:.4g} °/mm"),
+            ("twist", "—" if summ["twist_deg_per_mm"] is None else f"{summ['twist_deg_per_mm']:.4f} °/mm"),
             ("least thickness", f"{summ['min_thickness_mm']:.4f} mm (2|R − ε| = {2 * summ['blade_half_thickness_mm']:.4f})"),
             ("largest radius", f"{summ['max_radius_mm']:.4f} mm"),
             ("feed", f"{summ['feed_per_tool_mm']:.4g} mm / cutter rev, {summ['feed_per_workpiece_mm']:.4g} mm / workpiece rev"),
@@ -141,7 +141,7 @@ def echo_summary(summary: dict) -> None:
     """The lines ``pipeline run`` prints."""
     import click
     s = summary
-    tw = "—" if s["twist_deg_per_mm"] is None else f"{s['twist_deg_per_mm']:.4g} °/mm"
+    tw = "—" if s["twist_deg_per_mm"] is None else f"{s['twist_deg_per_mm']:.4f} °/mm"
     click.echo(f"polygon {s['name']}: ratio {s['ratio']:.6g} ({s['ratio_pq']}), feed {s['feed_per_tool_mm']:.4g} mm "
                f"per cutter rev, {s['rows']} × {s['columns']} cells in {s['simulate_s']:.2f} s")
     click.echo(f"  sides {s['sides']}, twist {tw}, least thickness {s['min_thickness_mm']:.4f} mm, "
