@@ -13,6 +13,7 @@ from pydantic.fields import PydanticUndefined
 
 from pipeline.config import Workflow
 from pipeline.config_errors import models_in
+from pipeline.polygon_config import PolygonWorkflow
 
 HEADER = """# Workflow keys
 
@@ -70,20 +71,36 @@ def _default(field) -> str:
     return "`null`" if field.default is None else f"`{field.default}`"
 
 
-def render() -> str:
-    out, seen, queue = [HEADER], set(), [Workflow]
+POLYGON = """
+# Polygon workflow (`job: polygon`)
+
+A workflow with `job: polygon` machines a round bar by polygon (2-axis) cutting (seed 004,
+`docs/polygon.md`): `pipeline run` takes these keys instead of the ones above (overlays work the
+same way).
+"""
+
+
+def _tables(root, top: str) -> list[str]:
+    """One table per model reachable from ``root``, breadth first."""
+    out, seen, queue = [], set(), [root]
     while queue:
         model = queue.pop(0)
         if model in seen:
             continue
         seen.add(model)
-        title = "workflow (top level)" if model is Workflow else model.__name__.lower()
+        title = top if model is root else model.__name__.lower()
         out.append(f"\n## {title}\n\n{(model.__doc__ or '').strip()}\n")
         out.append("| key | type | default | meaning |\n|---|---|---|---|")
         for name, field in model.model_fields.items():
             out.append(f"| `{name}` | {_type_name(field.annotation)} | {_default(field)} | {field.description or ''} |")
             queue.extend(m for m in models_in(field.annotation) if m not in seen)
-    return "\n".join(out) + "\n" + OVERLAYS
+    return out
+
+
+def render() -> str:
+    out = [HEADER, *_tables(Workflow, "workflow (top level)")]
+    polygon = [POLYGON, *_tables(PolygonWorkflow, "polygon workflow (top level)")]
+    return "\n".join(out) + "\n" + OVERLAYS + "\n".join(polygon) + "\n"
 
 
 if __name__ == "__main__":

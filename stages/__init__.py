@@ -19,7 +19,8 @@ Beside the stage modules, the computation lives in packages by concept: ``nc`` (
 and writing NC text), ``geometry`` (the cutter, envelopes, sweeps, workpieces), ``render`` (the
 depth-test back ends), ``scan`` (the render chain's kernels), ``cutting`` (forces, deflection,
 surface error), ``correction`` (vertex moves), ``gap`` (the sim-to-real diagnosis),
-``tool_measure`` (tool images and wear), ``thermal`` (the machine's drift) and ``virtual_machine`` (the independent check).
+``tool_measure`` (tool images and wear), ``thermal`` (the machine's drift), ``polygon`` (polygon cutting, the
+``polygon`` job) and ``virtual_machine`` (the independent check).
 """
 
 
