@@ -18,7 +18,7 @@ from pathlib import Path
 from pipeline.config_errors import _yaml_lines, read_yaml
 
 # job name → runner module (None: the engine's stage graph)
-JOBS = {"mould": None}
+JOBS = {"mould": None, "posture": "pipeline.posture_job"}
 
 
 class JobError(ValueError):

@@ -10,7 +10,8 @@ import importlib
 import pyarrow as pa
 
 TABLES = ("programs", "problems", "blocks", "passes", "cut_filter", "angle_prune", "generating", "engagement", "forces", "feeds", "allowance", "warnings",
-          "deflection", "errors", "corrected", "measurements", "gap_points", "gap_effects", "tool_wear")
+          "deflection", "errors", "corrected", "measurements", "gap_points", "gap_effects", "tool_wear", "posture",
+          "posture_cover")
 
 
 def endpoints() -> list[pa.Field]:

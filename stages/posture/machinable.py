@@ -2,29 +2,35 @@
 
 A micro-region i is machinable (δ_i = 1) when it faces the tool (ψ_i < 90°: the contact is on the
 ball, not the shank) and the ball centre that touches its centroid lies on the z-map's upper
-envelope: its depth along the view is not behind the cell's by more than the region's own offset
-plane can change within half a cell's diagonal (regions smaller than a cell are found too); a
-micro-region that is its whole face is machinable as well when its face generated a visible cell
-(it "owns" one), as the seed marks regions by the z-map's correspondence.
+envelope. The envelope at the centre is the cell's depth carried from the cell's centre to the ball
+centre along the plane of the offset face that generated the cell (exact where that face goes on
+under the centre; arcs and spheres, which have no one plane, are compared within what the
+region's own offset plane changes over half a cell's diagonal), so micro-regions smaller than a
+cell are found as well. A micro-region that is its whole face is machinable also when its face
+generated a visible cell (it "owns" one), as the seed reads the z-map's correspondence.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from stages.posture.offset import OffsetMesh
+from stages.posture.offset import OCCLUDER, OffsetMesh
 from stages.posture.part import Part
+from stages.posture.zmap import EMPTY
 
 TAN_CAP = np.tan(np.radians(85.0))   # steeper offset planes: the tolerance of an 85° one
-EPS_CELL = 0.05                      # depth slack for float round-off, in cells
+COS_STEEP = np.cos(np.radians(85.0))  # offset faces steeper than this carry no depth
+EPS_CELL = 0.25                      # depth slack: a ball centre within a quarter cell of the envelope is on it
 
 
-def tile_flags(P, tol, view, depth, ids, n_faces: int):
+def tile_flags(P, tol, grad, eps, view, depth, ids, n_faces: int):
     """The point test and the owned faces of one tile.
 
     Parameters
     ----------
     P : (n, 3) the regions' ball centres in the tile's frame (right, up, view) relative to the
-        origin; tol : (n,) depth tolerance, mm; view, depth, ids : the tile and its z-map.
+        origin; tol : (n,) depth tolerance against arcs and spheres, mm; grad : (n_faces, 2) depth
+        gradient of each offset face in the view, mm/mm (NaN for faces too steep to carry a depth);
+        eps : depth slack, mm; view, depth, ids : the tile and its z-map.
 
     Returns
     -------
@@ -41,8 +47,18 @@ def tile_flags(P, tol, view, depth, ids, n_faces: int):
     inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
     on = np.zeros(len(P), bool)
     k = np.nonzero(inside)[0]
+    win = ids[row[k], col[k]]
     dz = depth[row[k], col[k]]
-    on[k] = z[k] <= dz + tol[k]
+    ok = win == EMPTY
+    occ = win == OCCLUDER
+    ok[occ] = z[k[occ]] <= dz[occ] + tol[k[occ]]
+    f = np.nonzero(win >= 0)[0]
+    g = grad[win[f]]
+    steep = np.isnan(g[:, 0])
+    carried = dz[f] + (g[:, 0] * (x[k[f]] - col[k[f]] - 0.5) + g[:, 1] * (y[k[f]] - row[k[f]] - 0.5)) / view.px_per_mm
+    carried[steep] = dz[f][steep] + tol[k[f]][steep]
+    ok[f] = z[k[f]] <= carried + eps
+    on[k] = ok
     own = ids[ids >= 0]
     owned = np.bincount(own, minlength=n_faces)[:n_faces] > 0 if len(own) else np.zeros(n_faces, bool)
     return on, owned
@@ -57,6 +73,9 @@ def orientation_flags(part: Part, offset: OffsetMesh, axes, frames, views, owner
     nrm = part.normals
     pn = offset.plane_normals[part.parent]
     slack = EPS_CELL * cell_mm
+    # a neighbour's plane carried half a cell's diagonal departs from the region's surface by at most
+    # the angle between smooth neighbours (the offset's crease angle)
+    eps = slack + 0.5 * np.sqrt(2.0) * cell_mm * np.tan(np.radians(offset.crease_deg))
     cur, on, owned = -1, None, None
 
     def finish(k):
@@ -73,9 +92,13 @@ def orientation_flags(part: Part, offset: OffsetMesh, axes, frames, views, owner
             cz = np.abs(pn @ axes[k])
             tan = np.sqrt(np.maximum(0.0, 1 - cz * cz)) / np.maximum(cz, 1e-12)
             tol = 0.5 * np.sqrt(2.0) * cell_mm * np.minimum(tan, TAN_CAP) + slack
+            pv = offset.plane_normals @ frames[k].T
+            steep = np.abs(pv[:, 2]) < COS_STEEP
+            grad = -pv[:, :2] / np.where(steep, 1.0, pv[:, 2])[:, None]
+            grad[steep] = np.nan
             on = np.zeros(part.n, bool)
             owned = np.zeros(offset.n_faces, bool)
-        t_on, t_owned = tile_flags(P, tol, views[i], depth, ids, offset.n_faces)
+        t_on, t_owned = tile_flags(P, tol, grad, eps, views[i], depth, ids, offset.n_faces)
         on |= t_on
         owned |= t_owned
     if cur >= 0:

@@ -36,15 +36,17 @@ class OffsetMesh:
     plane_normals: np.ndarray
     centres: np.ndarray
     radius: float
+    crease_deg: float = 0.0
 
     def triangles(self) -> np.ndarray:
         return self.vertices[self.faces]
 
 
-def crease_deg(radius: float, sag_mm: float) -> float:
-    """Angle between neighbouring faces above which their edge gets an arc: the offset's chord between
-    vertex normals then sags less than ``sag_mm`` below the true offset (r (1 − cos(a/2)) ≤ sag)."""
-    return float(np.degrees(2 * np.arccos(max(-1.0, 1 - min(sag_mm / radius, 2.0)))).clip(2.0, 60.0))
+def crease_deg(radius: float, cell_mm: float) -> float:
+    """Angle between neighbouring convex faces above which their edge gets an arc rather than shared
+    vertex normals: a vertex normal then turns a face's offset by at most half a cell sideways
+    (r sin(a/2) ≤ cell/2), so what it hides is right to the z-map's resolution."""
+    return float(np.degrees(2 * np.arcsin(min(1.0, 0.5 * cell_mm / radius))).clip(0.5, 30.0))
 
 
 def _smooth_vertices(part: Part, crease: float):
@@ -54,7 +56,11 @@ def _smooth_vertices(part: Part, crease: float):
     import trimesh
     mesh = trimesh.Trimesh(part.vertices, part.faces, process=False)
     adj, edges = mesh.face_adjacency, mesh.face_adjacency_edges
-    smooth = mesh.face_adjacency_angles <= np.radians(crease)
+    # joined: nearly coplanar edges, and convex ones below the crease angle (their vertex normals sag
+    # at most the tolerance under the arc); concave edges keep each face's own translate, which
+    # overlap there, so the z-buffer takes their upper envelope exactly
+    ang = mesh.face_adjacency_angles
+    smooth = (ang <= np.radians(0.01)) | ((ang <= np.radians(crease)) & mesh.face_adjacency_convex)
     F = part.faces
     rows, cols = [], []
     for k in range(2):
@@ -142,12 +148,13 @@ def _sphere(r, sag):
     return s.vertices[s.faces]
 
 
-def inverse_offset(part: Part, radius: float, sag_mm: float) -> OffsetMesh:
-    """The inverse offset of ``part`` for a ball of ``radius`` (mm), arcs and spheres no coarser than
-    ``sag_mm`` (a quarter of the z-map cell is a good choice)."""
+def inverse_offset(part: Part, radius: float, cell_mm: float) -> OffsetMesh:
+    """The inverse offset of ``part`` for a ball of ``radius`` (mm), as fine as a z-map of ``cell_mm``
+    needs: arcs and spheres whose chords sag at most a quarter of a cell."""
     r = float(radius)
-    crease = crease_deg(r, sag_mm)
-    step = np.radians(max(crease, 2.0))
+    sag_mm = cell_mm / 4
+    crease = crease_deg(r, cell_mm)
+    step = 2 * np.arccos(max(-1.0, 1 - min(sag_mm / r, 2.0)))
     lab, nrm, pos, vert, mesh, adj, edges, smooth = _smooth_vertices(part, crease)
     W = pos + r * nrm
     F = part.faces
@@ -160,6 +167,14 @@ def inverse_offset(part: Part, radius: float, sag_mm: float) -> OffsetMesh:
         lu1, lu2 = lab[f1, np.argmax(F[f1] == u[:, None], 1)], lab[f2, np.argmax(F[f2] == u[:, None], 1)]
         lv1, lv2 = lab[f1, np.argmax(F[f1] == v[:, None], 1)], lab[f2, np.argmax(F[f2] == v[:, None], 1)]
         parts.append(_slerp_arcs(part.vertices[u], part.vertices[v], nrm[lu1], nrm[lu2], nrm[lv1], nrm[lv2], r, step))
+        # at each end of the arc, a triangle to the vertex's mean normal closes the spherical polygon
+        # the arcs around a convex vertex leave open (a fan from the mean, one triangle per arc)
+        mean = np.zeros((len(part.vertices), 3))
+        np.add.at(mean, vert, nrm)
+        mean /= np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-300)
+        for p, a, b in ((u, lu1, lu2), (v, lv1, lv2)):
+            x = part.vertices[p]
+            parts.append(np.stack([x + r * mean[p], x + r * nrm[a], x + r * nrm[b]], 1))
     # open boundary edges: half a cylinder from the face's normal over the edge to its back
     eu = mesh.edges_sorted
     from trimesh.grouping import group_rows
@@ -183,9 +198,12 @@ def inverse_offset(part: Part, radius: float, sag_mm: float) -> OffsetMesh:
         np.add.at(turn, u, edir)
         np.add.at(turn, v, -edir)
         corners = np.linalg.norm(turn, axis=1) > 2 * np.sin(np.radians(crease) / 2)
-    # corners: vertices where three or more smooth groups meet, and turns of the open boundary
+    # corners whose fan would sag (edges sharper than 45° meeting three or more groups), and turns of
+    # the open boundary: a sphere
     groups = np.bincount(vert, minlength=len(part.vertices))
-    corners |= groups >= 3
+    big = sharp & (mesh.face_adjacency_angles > np.radians(45.0))
+    n_big = np.bincount(edges[big].ravel(), minlength=len(part.vertices))
+    corners |= (groups >= 3) & (n_big >= 2)
     idx = np.nonzero(corners)[0]
     if len(idx):
         sph = _sphere(r, sag_mm)
@@ -200,4 +218,4 @@ def inverse_offset(part: Part, radius: float, sag_mm: float) -> OffsetMesh:
     pn = np.where(ln > 1e-300, pn / np.maximum(ln, 1e-300), part.face_normals)
     pn *= np.where(np.sum(pn * part.face_normals, 1, keepdims=True) < 0, -1, 1)
     centres = np.einsum("nk,nkj->nj", part.bary, ot[part.parent])
-    return OffsetMesh(vertices, faces, ids, nf, pn, centres, r)
+    return OffsetMesh(vertices, faces, ids, nf, pn, centres, r, crease)

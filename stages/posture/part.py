@@ -17,7 +17,8 @@ class Part:
     vertices : (nv, 3); faces : (nf, 3) vertex indices, counter-clockwise seen from outside;
     face_normals : (nf, 3) unit normals out of the material. Micro-regions (n of them): centroids
     (n, 3), areas (n,) mm², parent (n,) the face each lies in, bary (n, 3) the barycentric
-    coordinates of its centroid in that face, whole (n,) True where the region is its whole face.
+    coordinates of its centroid in that face, whole (n,) True where the region is its whole face,
+    triangles (n, 3, 3) its corners (for pictures).
     """
 
     vertices: np.ndarray
@@ -28,6 +29,7 @@ class Part:
     parent: np.ndarray
     bary: np.ndarray
     whole: np.ndarray
+    triangles: np.ndarray
     path: str = ""
 
     @property
@@ -95,10 +97,11 @@ def micro_regions(vertices, faces, region_mm: float, path: str = "") -> Part:
     sub = v[f]
     areas = 0.5 * np.linalg.norm(np.cross(sub[:, 1] - sub[:, 0], sub[:, 2] - sub[:, 0]), axis=1)
     keep = areas > 0
-    centroids, areas, parent = sub[keep].mean(1), areas[keep], np.asarray(parent, np.int64)[keep]
+    sub, areas, parent = sub[keep], areas[keep], np.asarray(parent, np.int64)[keep]
+    centroids = sub.mean(1)
     bary = trimesh.triangles.points_to_barycentric(tri[parent], centroids)
     whole = np.bincount(parent, minlength=len(faces))[parent] == 1
-    return Part(vertices, faces, fn, centroids, areas, parent, bary, whole, str(path))
+    return Part(vertices, faces, fn, centroids, areas, parent, bary, whole, sub, str(path))
 
 
 def load_part(path, region_mm: float) -> Part:
