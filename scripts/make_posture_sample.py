@@ -2,10 +2,10 @@
 
     python scripts/make_posture_sample.py [--out data_samples/posture/fan.ply] [--rings 48] [--sectors 320]
 
-A fan-like impeller (the seed's Fig. 3 a is a fan): a gently domed hub of radius 40 mm on a
-cylindrical side 6 mm high, with five blades that spiral outwards (a 50° twist from root to tip)
-and lean 35° sideways, so the flank on the lean side overhangs: an undercut for a vertical tool.
-The required surface is the hub, the blades and the side, open at the bottom (the fixture face).
+A fan-like impeller (the seed's Fig. 3 a is a fan): a gently domed hub of radius 40 mm (the
+rim 6 mm above the base), with five blades 7 mm high that turn by 15° from root to tip
+and lean 40° sideways, so the flank on the lean side overhangs: an undercut for a vertical tool.
+The required surface is the hub and the blades, open at the rim.
 Built as a height field over polar rings and sectors, then sheared sideways at the blades: a one
 to one map of space, so the surface stays one sheet (manifold, consistently wound, normals out).
 ``bench/posture_bench.py`` makes the same part with 100,000 triangles.
@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 R, HUB, DOME = 40.0, 6.0, 4.0              # rim radius, side height, hub dome rise (mm)
-BLADES, TWIST, LEAN = 5, np.radians(50.0), np.radians(40.0)
+BLADES, TWIST, LEAN = 5, np.radians(15.0), np.radians(40.0)
 RHO_IN, RHO_OUT, BLADE_H, HALF_W = 10.0, 36.0, 7.0, 7.0   # blade span, height and half width (mm)
 
 

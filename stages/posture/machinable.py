@@ -2,11 +2,10 @@
 
 A micro-region i is machinable (δ_i = 1) when it faces the tool (ψ_i < 90°: the contact is on the
 ball, not the shank) and the ball centre that touches its centroid lies on the z-map's upper
-envelope. The envelope at the centre is the cell's depth carried from the cell's centre to the ball
-centre along the plane of the offset face that generated the cell (exact where that face goes on
-under the centre; arcs and spheres, which have no one plane, are compared within what the
-region's own offset plane changes over half a cell's diagonal), so micro-regions smaller than a
-cell are found as well. A micro-region that is its whole face is machinable also when its face
+envelope: not behind the plane of the offset face that generated its cell by more than a quarter
+cell, measured along that plane's normal (exact where that face goes on over the centre; against
+arcs and spheres, which have no one plane, the depth may differ by what the region's own offset
+plane changes over half a cell's diagonal), so micro-regions smaller than a cell are found as well. A micro-region that is its whole face is machinable also when its face
 generated a visible cell (it "owns" one), as the seed reads the z-map's correspondence.
 """
 from __future__ import annotations
@@ -18,7 +17,7 @@ from stages.posture.part import Part
 from stages.posture.zmap import EMPTY
 
 TAN_CAP = np.tan(np.radians(85.0))   # steeper offset planes: the tolerance of an 85° one
-COS_STEEP = np.cos(np.radians(85.0))  # offset faces steeper than this carry no depth
+COS_STEEP = np.cos(np.radians(89.5))  # offset faces steeper than this carry no depth
 EPS_CELL = 0.25                      # depth slack: a ball centre within a quarter cell of the envelope is on it
 
 
@@ -28,9 +27,10 @@ def tile_flags(P, tol, grad, eps, view, depth, ids, n_faces: int):
     Parameters
     ----------
     P : (n, 3) the regions' ball centres in the tile's frame (right, up, view) relative to the
-        origin; tol : (n,) depth tolerance against arcs and spheres, mm; grad : (n_faces, 2) depth
-        gradient of each offset face in the view, mm/mm (NaN for faces too steep to carry a depth);
-        eps : depth slack, mm; view, depth, ids : the tile and its z-map.
+        origin; tol : (n,) depth tolerance against arcs and spheres, mm; grad : (n_faces, 3) depth
+        gradient of each offset face in the view, mm/mm (NaN for faces too steep to carry a depth),
+        and the view component of its normal; eps : how far behind the generating face's plane (along
+        its normal) a centre may lie, mm; view, depth, ids : the tile and its z-map.
 
     Returns
     -------
@@ -56,8 +56,9 @@ def tile_flags(P, tol, grad, eps, view, depth, ids, n_faces: int):
     g = grad[win[f]]
     steep = np.isnan(g[:, 0])
     carried = dz[f] + (g[:, 0] * (x[k[f]] - col[k[f]] - 0.5) + g[:, 1] * (y[k[f]] - row[k[f]] - 0.5)) / view.px_per_mm
-    carried[steep] = dz[f][steep] + tol[k[f]][steep]
-    ok[f] = z[k[f]] <= carried + eps
+    # how far the centre lies behind the generating face's plane, measured along that plane's normal
+    behind = (z[k[f]] - carried) * g[:, 2]
+    ok[f] = np.where(steep, z[k[f]] <= dz[f] + tol[k[f]], behind <= eps)
     on[k] = ok
     own = ids[ids >= 0]
     owned = np.bincount(own, minlength=n_faces)[:n_faces] > 0 if len(own) else np.zeros(n_faces, bool)
@@ -74,8 +75,8 @@ def orientation_flags(part: Part, offset: OffsetMesh, axes, frames, views, owner
     pn = offset.plane_normals[part.parent]
     slack = EPS_CELL * cell_mm
     # a neighbour's plane carried half a cell's diagonal departs from the region's surface by at most
-    # the angle between smooth neighbours (the offset's crease angle)
-    eps = slack + 0.5 * np.sqrt(2.0) * cell_mm * np.tan(np.radians(offset.crease_deg))
+    # that times the angle between smooth neighbours (the offset's crease angle)
+    eps = slack + 0.5 * np.sqrt(2.0) * cell_mm * np.sin(np.radians(offset.crease_deg))
     cur, on, owned = -1, None, None
 
     def finish(k):
@@ -94,8 +95,10 @@ def orientation_flags(part: Part, offset: OffsetMesh, axes, frames, views, owner
             tol = 0.5 * np.sqrt(2.0) * cell_mm * np.minimum(tan, TAN_CAP) + slack
             pv = offset.plane_normals @ frames[k].T
             steep = np.abs(pv[:, 2]) < COS_STEEP
-            grad = -pv[:, :2] / np.where(steep, 1.0, pv[:, 2])[:, None]
-            grad[steep] = np.nan
+            grad = np.empty((len(pv), 3))
+            grad[:, :2] = -pv[:, :2] / np.where(steep, 1.0, pv[:, 2])[:, None]
+            grad[:, 2] = np.abs(pv[:, 2])
+            grad[steep, 0] = np.nan
             on = np.zeros(part.n, bool)
             owned = np.zeros(offset.n_faces, bool)
         t_on, t_owned = tile_flags(P, tol, grad, eps, views[i], depth, ids, offset.n_faces)
