@@ -70,20 +70,36 @@ def _default(field) -> str:
     return "`null`" if field.default is None else f"`{field.default}`"
 
 
-def render() -> str:
-    out, seen, queue = [HEADER], set(), [Workflow]
+POSTURE = """
+# Posture workflows (`job: posture`)
+
+Generated from `pipeline/posture_config.py`. A workflow with `job: posture` evaluates fixed tool
+orientations of a ball end mill on a part (seed 001; the method, the angles and the outputs are in
+`docs/posture.md`). Its keys are checked like the mould workflow's; `--overlay` merges the same way.
+"""
+
+
+def _models(root, top: str) -> list[str]:
+    out, seen, queue = [], set(), [root]
     while queue:
         model = queue.pop(0)
         if model in seen:
             continue
         seen.add(model)
-        title = "workflow (top level)" if model is Workflow else model.__name__.lower()
+        title = top if model is root else model.__name__.lower()
         out.append(f"\n## {title}\n\n{(model.__doc__ or '').strip()}\n")
         out.append("| key | type | default | meaning |\n|---|---|---|---|")
         for name, field in model.model_fields.items():
             out.append(f"| `{name}` | {_type_name(field.annotation)} | {_default(field)} | {field.description or ''} |")
             queue.extend(m for m in models_in(field.annotation) if m not in seen)
-    return "\n".join(out) + "\n" + OVERLAYS
+    return out
+
+
+def render() -> str:
+    from pipeline.posture_config import PostureWorkflow
+    out = [HEADER] + _models(Workflow, "workflow (top level)")
+    return ("\n".join(out) + "\n" + OVERLAYS + POSTURE
+            + "\n".join(_models(PostureWorkflow, "posture workflow (top level)")) + "\n")
 
 
 if __name__ == "__main__":

@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 
 COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#bcbd22", "#17becf",
-          "#7f7f7f")
+          "#aec7e8", "#ffbb78", "#98df8a", "#ff9896", "#c5b0d5", "#c49c94", "#f7b6d2", "#dbdb8d", "#9edae5",
+          "#393b79", "#637939")                    # tab20 without its greys: twenty postures apart
 UNREACHABLE, UNCOVERED = "#d9d9d9", "#404040"
 
 

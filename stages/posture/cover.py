@@ -47,18 +47,23 @@ def greedy_cover(delta_bits, areas, e=None, max_postures: int = 20, tolerance: f
     first = np.full(m, -1, np.int64)
     chosen, gains, cum = [], [], []
     area = 0.0
+    g = _gains(delta_bits, areas, m)
     while len(chosen) < max_postures and area < upper_area * (1 - tolerance) - 1e-12:
-        g = _gains(delta_bits, areas * ~covered, m)
         best = np.flatnonzero(g >= g.max() - 1e-12 * max(1.0, g.max()))
         k = int(best[np.argmax(e[best])])
         if g[k] <= 0:
             break
         new = np.unpackbits(delta_bits[k], count=m).astype(bool) & ~covered
+        gains.append(float(g[k]))
+        # only the bytes holding newly covered regions change the other orientations' gains
+        idx = np.flatnonzero(new)
+        cols, pos = np.unique(idx // 8, return_inverse=True)
+        bits = np.unpackbits(delta_bits[:, cols], axis=1)[:, 8 * pos + idx % 8]
+        g -= bits @ areas[idx]
         first[new] = len(chosen)
         covered |= new
         area = float(areas[covered].sum())
         chosen.append(k)
-        gains.append(float(g[k]))
         cum.append(area)
     return dict(chosen=np.asarray(chosen, np.int64), gain_mm2=np.asarray(gains), covered_mm2=np.asarray(cum),
                 upper_mm2=upper_area, reached=bool(area >= upper_area * (1 - tolerance) - 1e-9),

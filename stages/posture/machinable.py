@@ -12,9 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from stages.posture.offset import OCCLUDER, OffsetMesh
+from stages.posture.offset import EMPTY, OCCLUDER, OffsetMesh
 from stages.posture.part import Part
-from stages.posture.zmap import EMPTY
 
 TAN_CAP = np.tan(np.radians(85.0))   # steeper offset planes: the tolerance of an 85° one
 COS_STEEP = np.cos(np.radians(89.5))  # offset faces steeper than this carry no depth

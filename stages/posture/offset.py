@@ -17,6 +17,7 @@ import numpy as np
 from stages.posture.part import Part
 
 OCCLUDER = -2           # id of offset triangles that belong to no face (arcs, spheres)
+EMPTY = -1              # z-map cells where no offset lies
 
 
 @dataclass
@@ -40,6 +41,12 @@ class OffsetMesh:
 
     def triangles(self) -> np.ndarray:
         return self.vertices[self.faces]
+
+
+def decode(code):
+    """Ids from the rendered code (face + 1, 0 for an occluder, −1 for nothing)."""
+    code = np.asarray(code)
+    return np.where(code > 0, code - 1, np.where(code == 0, OCCLUDER, EMPTY)).astype(np.int64)
 
 
 def crease_deg(radius: float, cell_mm: float) -> float:

@@ -2,7 +2,7 @@
 
 For orientation k the part is seen along −θ_k (``orientations.frames``): per cell the depth of the
 nearest inverse-offset triangle (the height the tool-tip centre can come down to) and which face of
-the part generated it. Ids in a z-map: the face (≥ 0), ``EMPTY`` where no offset lies, ``OCCLUDER``
+the part generated it. Ids in a z-map (``offset.decode``): the face (≥ 0), ``EMPTY`` where no offset lies, ``OCCLUDER``
 where an arc or a sphere is nearest. Each orientation's window is the offset's outline in that frame,
 cut into tiles of at most ``tile_px`` pixels a side so memory stays bounded at any resolution.
 
@@ -20,12 +20,11 @@ import math
 import numpy as np
 
 from stages import InputError
-from stages.posture.offset import OCCLUDER, OffsetMesh
+from stages.posture.offset import OffsetMesh, decode
 from stages.render.base import View, make_scene
 
 log = logging.getLogger(__name__)
 
-EMPTY = -1
 CPU_TRIANGLES = 2_000_000        # triangles per CPU render call (the offset repeated per window)
 
 
@@ -87,12 +86,6 @@ def cpu_zmaps(offset: OffsetMesh, views):
         sc = make_scene(np.tile(tris, (nb, 1, 1)), np.repeat(np.arange(nb), t), np.tile(code, nb))
         for j, im in enumerate(r.render(batch, sc)):
             yield a + j, im.depth, decode(im.id)
-
-
-def decode(code):
-    """Ids from the rendered code (face + 1, 0 for an occluder, −1 for nothing)."""
-    code = np.asarray(code)
-    return np.where(code > 0, code - 1, np.where(code == 0, OCCLUDER, EMPTY)).astype(np.int64)
 
 
 def zmaps(offset: OffsetMesh, views, backend: str = "auto"):

@@ -10,8 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stages.posture.offset import OffsetMesh
-from stages.posture.zmap import decode
+from stages.posture.offset import OffsetMesh, decode
 from stages.render.base import _pack
 
 _VS = """
