@@ -58,8 +58,9 @@ def greedy_cover(delta_bits, areas, e=None, max_postures: int = 20, tolerance: f
         # only the bytes holding newly covered regions change the other orientations' gains
         idx = np.flatnonzero(new)
         cols, pos = np.unique(idx // 8, return_inverse=True)
-        bits = np.unpackbits(delta_bits[:, cols], axis=1)[:, 8 * pos + idx % 8]
-        g -= bits @ areas[idx]
+        pick, w = 8 * pos + idx % 8, areas[idx]
+        for a in range(0, len(delta_bits), BLOCK):              # in blocks: memory stays small
+            g[a:a + BLOCK] -= np.unpackbits(delta_bits[a:a + BLOCK, cols], axis=1)[:, pick] @ w
         first[new] = len(chosen)
         covered |= new
         area = float(areas[covered].sum())
