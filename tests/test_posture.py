@@ -111,6 +111,16 @@ def test_hemisphere_phi2_is_the_analytic_cap():
     assert np.allclose(res["phi2"], (np.pi - beta) / np.pi, atol=0.01)
 
 
+def test_tiles_bound_the_memory_and_change_nothing():
+    V, F = dome(n_lat=10, n_lon=40)
+    part = micro_regions(V, F, 3.0)
+    off = inverse_offset(part, R_BALL, 0.5)
+    g = grid("rxry", (-45, 45, 45), (0, 30, 30))
+    one_tile = evaluate(part, off, g, sin2psi, 0.5, 0.5, backend="cpu", tile_px=4096)
+    tiles = evaluate(part, off, g, sin2psi, 0.5, 0.5, backend="cpu", tile_px=64)      # windows of ~100 px: 4 tiles
+    assert np.array_equal(one_tile["delta"], tiles["delta"])
+
+
 # --- an undercut part against a brute-force accessibility check -------------------------------------------
 def accessible(mesh, P, N, axis, up, r, tol):
     """Brute force, independent of the renders: the ball touching P along its normal must keep ``tol``
