@@ -14,6 +14,7 @@ from pydantic.fields import PydanticUndefined
 from pipeline.config import Workflow
 from pipeline.config_errors import models_in
 from pipeline.polygon_config import PolygonWorkflow
+from pipeline.posture_config import PostureWorkflow
 
 HEADER = """# Workflow keys
 
@@ -80,6 +81,15 @@ same way).
 """
 
 
+POSTURE = """
+# Posture workflows (`job: posture`)
+
+Generated from `pipeline/posture_config.py`. A workflow with `job: posture` evaluates fixed tool
+orientations of a ball end mill on a part (seed 001; the method, the angles and the outputs are in
+`docs/posture.md`). Its keys are checked like the mould workflow's; `--overlay` merges the same way.
+"""
+
+
 def _tables(root, top: str) -> list[str]:
     """One table per model reachable from ``root``, breadth first."""
     out, seen, queue = [], set(), [root]
@@ -100,7 +110,8 @@ def _tables(root, top: str) -> list[str]:
 def render() -> str:
     out = [HEADER, *_tables(Workflow, "workflow (top level)")]
     polygon = [POLYGON, *_tables(PolygonWorkflow, "polygon workflow (top level)")]
-    return "\n".join(out) + "\n" + OVERLAYS + "\n".join(polygon) + "\n"
+    posture = [POSTURE, *_tables(PostureWorkflow, "posture workflow (top level)")]
+    return "\n".join(out) + "\n" + OVERLAYS + "\n".join(polygon) + "\n" + "\n".join(posture) + "\n"
 
 
 if __name__ == "__main__":

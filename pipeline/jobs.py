@@ -18,7 +18,7 @@ from pathlib import Path
 from pipeline.config_errors import _yaml_lines, read_yaml
 
 # job name → runner module (None: the engine's stage graph)
-JOBS = {"mould": None, "polygon": "pipeline.polygon_job"}
+JOBS = {"mould": None, "polygon": "pipeline.polygon_job", "posture": "pipeline.posture_job"}
 
 
 class JobError(ValueError):

@@ -11,7 +11,7 @@ import pyarrow as pa
 
 TABLES = ("programs", "problems", "blocks", "passes", "cut_filter", "angle_prune", "generating", "engagement", "forces", "feeds", "allowance", "warnings",
           "deflection", "errors", "corrected", "measurements", "gap_points", "gap_effects", "tool_wear",
-          "polygon_sections")
+          "polygon_sections", "posture", "posture_cover")
 
 
 def endpoints() -> list[pa.Field]:
