@@ -323,6 +323,16 @@ def load_workflow(path: str | Path, overlays=()) -> tuple[Workflow, Path]:
     ``pipeline.overlay``) are merged over the file in order before validation; a bad value they
     bring in is reported against the overlay that gave it.
     """
+    return load_model(path, Workflow, overlays)
+
+
+def load_model(path: str | Path, model, overlays=(), file_keys=FILE_KEYS, problems=None):
+    """:func:`load_workflow` for the workflow model ``model`` of any job (``pipeline.jobs``).
+
+    ``file_keys`` are the keys whose values in an overlay are paths relative to it; ``problems``,
+    given the validated workflow, lists ``(key path, message, value)`` of what no single field can
+    check (one key against another), reported like a field's error with the file, line and key.
+    """
     path = Path(path)
     raw, text = read_yaml(path, "workflow", WorkflowError)
     if not isinstance(raw, dict):
@@ -331,17 +341,22 @@ def load_workflow(path: str | Path, overlays=()) -> tuple[Workflow, Path]:
     for ov in overlays:
         from pipeline.overlay import OverlayError, apply_overlay, read_overlay
         try:
-            over, ov_text = read_overlay(ov, Workflow, FILE_KEYS)
+            over, ov_text = read_overlay(ov, model, file_keys)
             raw = apply_overlay(raw, over, ov)
         except OverlayError as e:
             raise WorkflowError(str(e)) from None
         read.append((Path(ov), over, ov_text))
     try:
-        wf = Workflow.model_validate(raw)
+        wf = model.model_validate(raw)
+        found = problems(wf) if problems else []
+        if found:
+            raise ValidationError.from_exception_data(model.__name__, [
+                {"type": "value_error", "loc": loc, "input": val, "ctx": {"error": ValueError(msg)}}
+                for loc, msg, val in found])
     except ValidationError as e:
         from pipeline.config_errors import format_error
         where, where_text = _blame(path, text, read, e)
-        raise WorkflowError(format_error(where, e, where_text, Workflow)) from None
+        raise WorkflowError(format_error(where, e, where_text, model)) from None
     base = path.resolve().parent
     if base.name == "workflows":
         base = base.parent

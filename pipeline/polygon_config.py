@@ -8,10 +8,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal, Optional
 
-from pydantic import Field, ValidationError, field_validator
+from pydantic import Field, field_validator
 
-from pipeline.config import WorkflowError, _blame, _Strict, resolve
-from pipeline.config_errors import format_error, read_yaml
+from pipeline.config import _Strict, load_model, resolve
 from stages.polygon.cut import Grid, make_grid
 from stages.polygon.kinematics import Setup
 
@@ -134,32 +133,7 @@ def load_polygon(path, overlays=()) -> tuple[PolygonWorkflow, Path]:
 
     Returns the workflow and the project folder its relative paths are relative to.
     """
-    path = Path(path)
-    raw, text = read_yaml(path, "workflow", WorkflowError)
-    if not isinstance(raw, dict):
-        raise WorkflowError(f"{path}: a workflow is a mapping of keys, got {type(raw).__name__}")
-    read = []
-    for ov in overlays:
-        from pipeline.overlay import OverlayError, apply_overlay, read_overlay
-        try:
-            over, ov_text = read_overlay(ov, PolygonWorkflow, ())
-            raw = apply_overlay(raw, over, ov)
-        except OverlayError as e:
-            raise WorkflowError(str(e)) from None
-        read.append((Path(ov), over, ov_text))
-    try:
-        wf = PolygonWorkflow.model_validate(raw)
-        probs = _problems(wf)
-        if probs:
-            # as pydantic's own errors, so format_error gives them the file, line and key
-            raise ValidationError.from_exception_data("PolygonWorkflow", [
-                {"type": "value_error", "loc": loc, "input": val, "ctx": {"error": ValueError(msg)}}
-                for loc, msg, val in probs])
-    except ValidationError as e:
-        where, where_text = _blame(path, text, read, e)      # the overlay that set the bad key, if one did
-        raise WorkflowError(format_error(where, e, where_text, PolygonWorkflow)) from None
-    base = path.resolve().parent
-    return wf, (base.parent if base.name == "workflows" else base)
+    return load_model(path, PolygonWorkflow, overlays, file_keys=(), problems=_problems)
 
 
 def output_dir(wf: PolygonWorkflow, base: Path, out=None) -> Path:

@@ -8,10 +8,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal, Optional, Union
 
-from pydantic import Field, ValidationError, field_validator, model_validator
+from pydantic import Field, field_validator, model_validator
 
-from pipeline.config import WorkflowError, _Strict, resolve
-from pipeline.config_errors import read_yaml
+from pipeline.config import _Strict, load_model, resolve
 
 # keys whose strings name files, relative to the project (the folder holding workflows/)
 FILE_KEYS = ("part", "table")
@@ -129,30 +128,7 @@ class PostureWorkflow(_Strict):
 
 def load_posture(path, overlays=()) -> tuple[PostureWorkflow, Path]:
     """Read and validate a posture workflow (and overlays); return it and the project folder."""
-    path = Path(path)
-    raw, text = read_yaml(path, "workflow", WorkflowError)
-    if not isinstance(raw, dict):
-        raise WorkflowError(f"{path}: a workflow is a mapping of keys, got {type(raw).__name__}")
-    read = []
-    for ov in overlays:
-        from pipeline.overlay import OverlayError, apply_overlay, read_overlay
-        try:
-            over, ov_text = read_overlay(ov, PostureWorkflow, FILE_KEYS)
-            raw = apply_overlay(raw, over, ov)
-        except OverlayError as e:
-            raise WorkflowError(str(e)) from None
-        read.append((Path(ov), over, ov_text))
-    try:
-        wf = PostureWorkflow.model_validate(raw)
-    except ValidationError as e:
-        from pipeline.config import _blame
-        from pipeline.config_errors import format_error
-        where, where_text = _blame(path, text, read, e)
-        raise WorkflowError(format_error(where, e, where_text, PostureWorkflow)) from None
-    base = path.resolve().parent
-    if base.name == "workflows":
-        base = base.parent
-    return wf, base
+    return load_model(path, PostureWorkflow, overlays, file_keys=FILE_KEYS)
 
 
 def key_line(path, text_keys: tuple) -> str:
