@@ -176,8 +176,8 @@ def variant_workflow(path: Path, settings, out: Path) -> Path:
     def absolute(v, key=""):
         if isinstance(v, dict):
             return {k: absolute(x, k) for k, x in v.items()}
-        if isinstance(v, list) and key == "programs":
-            return [str(resolve(base, x)) for x in v]
+        if isinstance(v, list):                   # programs, or tool / material lists keyed by t
+            return [absolute(x, key) for x in v]
         if isinstance(v, str) and key in ("programs", "stock", "nominal", "output", "profile", "table", "measurements"):
             return str(resolve(base, v))
         return v
