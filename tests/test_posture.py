@@ -249,10 +249,11 @@ def test_the_cavity_shows_the_seeds_result_and_a_few_postures_cover_it():
     walls) and one per undercut side, each of those leaning away from its wall, along the wall's normal,
     so the ball reaches under the overhang — the undercut sides read from the mesh, not from the job.
     Tolerance: what the z-map resolves. A ball centre within ¼ cell of the envelope is on it, so where
-    a posture's reach ends inside the bound — along each undercut's lip and the foot of its fillet, 50 mm
-    straight plus the corners' 2 × 16 mm, about 4 × 80 = 320 mm in all — a band about half a cell wide
-    (0.5 mm) may be judged either way: 160 mm², 1.0 % of the bound (about 16,000 mm²). The greedy cover
-    goes on (up to six postures) until the union is the whole bound; it must be within 1 % after those."""
+    a posture's reach ends inside the bound — along each undercut's lip and along the foot of its fillet:
+    30 mm straight and two corner arcs of radius 10 mm, 61 mm, four such lines — a band about half a cell
+    wide may be judged either way: 0.5 mm × 245 mm = 123 mm², 0.8 % of the bound (about 16,000 mm²).
+    The greedy cover goes on (up to six postures) until the union is the whole bound; it must be within
+    that band of it after those few."""
     cell = 1.0
     part = load_part(CAVITY, 3.0)
     g = grid("rxry", (-90, 90, 10), (-90, 90, 10))
@@ -270,7 +271,8 @@ def test_the_cavity_shows_the_seeds_result_and_a_few_postures_cover_it():
     sides = undercut_sides(CAVITY)
     assert len(sides) == 2                                              # the ±X walls
     few = cov["chosen"][:1 + len(sides)]
-    assert cov["covered_mm2"][len(few) - 1] >= 0.99 * cov["upper_mm2"]
+    band_mm2 = 0.5 * cell * 4 * (30.0 + 2 * np.pi / 2 * 10.0)
+    assert cov["covered_mm2"][len(few) - 1] >= cov["upper_mm2"] - band_mm2
     assert (tilt[few] < 10.5).sum() <= 1                               # one posture near the vertical at most
     az = np.radians(g["azimuth_deg"][few][tilt[few] >= 10.5])
     aims = np.stack([np.cos(az), np.sin(az)], 1) @ sides.T             # cos of the lean's angle to each undercut's normal
