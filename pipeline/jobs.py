@@ -8,7 +8,8 @@ schema and runner module (``JOBS``). A runner module exposes
   validate the workflow (``WorkflowError`` naming the file, line and key), compute, write its
   tables under ``<out>/tables/<table>/``, its report and ``<out>/run.json`` (the returned summary,
   with ``name``, ``job``, ``output``, ``wall_s`` and ``failures``); bad input raises ``InputError``;
-- ``echo_summary(summary)``: the lines ``pipeline run`` prints.
+- ``echo_summary(summary)``: the lines ``pipeline run`` prints;
+- ``load(path, overlays=())``: the validated workflow and its project folder (:func:`load_any`).
 """
 from __future__ import annotations
 
@@ -39,3 +40,12 @@ def job_name(path) -> str:
 def runner(job: str):
     """The runner module of a job that is not the stage graph."""
     return importlib.import_module(JOBS[job])
+
+
+def load_any(path, overlays=()):
+    """Any job's workflow file read and validated by its job's reader: (workflow, project folder)."""
+    job = job_name(path)
+    if JOBS[job] is None:
+        from pipeline.config import load_workflow
+        return load_workflow(path, overlays)
+    return runner(job).load(path, overlays)

@@ -29,6 +29,9 @@ from stages.polygon.pictures import sections_png, view3d_png
 from stages.polygon.solid import MAX_SIDES, Machined, machine
 
 
+load = load_polygon      # the runner contract (pipeline.jobs): the job's workflow reader
+
+
 def sections_table(part: Machined) -> pa.Table:
     """The station sections as rows (z_mm, theta_deg, r_mm)."""
     g, k = part.grid, len(part.stations)

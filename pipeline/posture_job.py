@@ -33,6 +33,9 @@ from stages.posture.zmap import backend_name
 log = logging.getLogger(__name__)
 
 
+load = load_posture      # the runner contract (pipeline.jobs): the job's workflow reader
+
+
 def efficiency_of(wf: PostureWorkflow, path: Path, base: Path):
     """λ(ψ) of the workflow: the seed's sin 2ψ, a CSV table or inline points."""
     if wf.efficiency == "sin2psi":

@@ -53,9 +53,10 @@ def _half(v):
     return 0.5 * (v[1] - v[0]) if len(v) > 1 else 0.5
 
 
-def cover_picture(path: Path, part, cov: dict) -> Path:
-    """The part from above and obliquely, each micro-region in the colour of the first chosen posture
-    that machines it (light grey: no orientation of the grid reaches it; dark: not covered)."""
+def cover_picture(path: Path, part, cov: dict, names=None) -> Path:
+    """The part from above and obliquely from two opposite sides (a pocket's walls, undercuts too, are
+    seen on its far side), each micro-region in the colour of the first chosen posture that machines it
+    (light grey: no orientation of the grid reaches it; dark: not covered). ``names``: the postures' legends."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -67,8 +68,13 @@ def cover_picture(path: Path, part, cov: dict) -> Path:
     light = np.array([0.3, -0.4, 0.87])
     shade = 0.55 + 0.45 * np.abs(part.normals @ (light / np.linalg.norm(light)))
     col = rgb[code] * shade[:, None]
-    fig, axes = plt.subplots(1, 2, figsize=(13, 6.2))
-    for ax, (el, az, title) in zip(axes, ((90.0, -90.0, "from above"), (35.0, -60.0, "oblique"))):
+    labels = list(names) if names is not None else [f"posture {s + 1}" for s in range(len(cov["chosen"]))]
+    labels += ["no orientation reaches", "reachable, not covered"]
+    ncol = min(6, len(labels))
+    legend_in = 0.3 + 0.22 * -(-len(labels) // ncol)                 # inches under the pictures for the legend
+    fig, axes = plt.subplots(1, 3, figsize=(16, 5.6 + legend_in))
+    for ax, (el, az, title) in zip(axes, ((90.0, -90.0, "from above"), (40.0, -60.0, "from +X, −Y"),
+                                          (40.0, 120.0, "from −X, +Y"))):
         e, a = np.radians(el), np.radians(az)
         view = np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])     # towards the viewer
         right = np.cross([0.0, 0.0, 1.0], view) if abs(view[2]) < 0.999 else np.array([1.0, 0, 0])
@@ -84,11 +90,9 @@ def cover_picture(path: Path, part, cov: dict) -> Path:
         ax.set_axis_off()
         ax.set_title(title)
     handles = [plt.Rectangle((0, 0), 1, 1, color=COLORS[s % len(COLORS)]) for s in range(len(cov["chosen"]))]
-    labels = [f"posture {s + 1}" for s in range(len(cov["chosen"]))]
     handles += [plt.Rectangle((0, 0), 1, 1, color=UNREACHABLE), plt.Rectangle((0, 0), 1, 1, color=UNCOVERED)]
-    labels += ["no orientation reaches", "reachable, not covered"]
-    fig.legend(handles, labels, loc="lower center", ncol=min(6, len(labels)), fontsize=9)
-    fig.tight_layout(rect=(0, 0.07, 1, 1))
+    fig.legend(handles, labels, loc="lower center", ncol=ncol, fontsize=9)
+    fig.tight_layout(rect=(0, legend_in / (5.6 + legend_in), 1, 0.97))
     fig.savefig(path, dpi=90)
     plt.close(fig)
     return path
@@ -100,7 +104,8 @@ def report(out: Path, wf, part, g: dict, res: dict, cov: dict, summary: dict) ->
     rdir.mkdir(parents=True, exist_ok=True)
     g = dict(g, kind=wf.orientations.kind)
     heat_maps(rdir / "posture_map.png", g, res, cov["chosen"], wf.alpha)
-    cover_picture(rdir / "posture_cover.png", part, cov)
+    cover_picture(rdir / "posture_cover.png", part, cov, [f"{s + 1}: rx {g['rx_deg'][k]:g}°, ry {g['ry_deg'][k]:g}°"
+                                                          for s, k in enumerate(cov["chosen"])])
     b = summary["best"]
     up = cov["upper_mm2"]
     rows = "".join(
@@ -112,7 +117,7 @@ def report(out: Path, wf, part, g: dict, res: dict, cov: dict, summary: dict) ->
     lam = "sin 2ψ (the seed's)" if wf.efficiency == "sin2psi" else "the workflow's table"
     page = f"""<!doctype html><html><head><meta charset="utf-8"><title>{html.escape(wf.name)}: tool postures</title>
 <style>body{{font-family:sans-serif;margin:2em;max-width:1300px}}table{{border-collapse:collapse}}
-td,th{{border:1px solid #ccc;padding:3px 8px;text-align:right}}</style></head><body>
+td,th{{border:1px solid #ccc;padding:3px 8px;text-align:right}}img{{max-width:100%}}</style></head><body>
 <h1>{html.escape(wf.name)}: tool postures for 3+2-axis machining</h1>
 <p>Part <code>{html.escape(str(part.path))}</code>: {part.area:.0f} mm², {part.n} micro-regions; ball radius
 {wf.ball_radius_mm:g} mm; {len(g['axis'])} orientations ({html.escape(wf.orientations.kind)} grid); z-map cells

@@ -1,14 +1,21 @@
-"""Make the posture job's sample part ``data_samples/posture/fan.ply`` (deterministic).
+"""Make the posture job's sample parts in ``data_samples/posture/`` (deterministic).
 
-    python scripts/make_posture_sample.py [--out data_samples/posture/fan.ply] [--rings 48] [--sectors 320]
+    python scripts/make_posture_sample.py [--part cavity|fan|both] [--out FILE] [--rings 48] [--sectors 320]
 
-A fan-like impeller (the seed's Fig. 3 a is a fan): a gently domed hub of radius 40 mm (the
-rim 6 mm above the base), with five blades 7 mm high that turn by 15° from root to tip
-and lean 40° sideways, so the flank on the lean side overhangs: an undercut for a vertical tool.
-The required surface is the hub and the blades, open at the rim.
+``cavity.ply`` (``workflows/posture.yaml``): a mould cavity insert with undercuts, what a shop
+machines 3+2. A block 92 × 72 mm on top, 20 mm high, its outer sides drafted 5° out to the base;
+in its top a pocket 70 × 50 mm at the rim (corners of 10 mm radius in plan), 15 mm deep, with
+4 mm fillets at the floor. The pocket's +X and −X walls are undercuts: they overhang, drafted −15°
+and −10° (the pocket widens downwards), flat; its ±Y walls are drafted 3°. Built as closed loops
+(floor, fillets and walls, top, sides, base) joined by strips: one closed sheet, watertight.
+
+``fan.ply`` (``workflows/posture_fan.yaml``): a fan-like impeller (the seed's Fig. 3 a is a fan): a
+gently domed hub of radius 40 mm (the rim 6 mm above the base), with five blades 7 mm high that
+turn by 15° from root to tip and lean 40° sideways, so the flank on the lean side overhangs: an
+undercut for a vertical tool. The required surface is the hub and the blades, open at the rim.
 Built as a height field over polar rings and sectors, then sheared sideways at the blades: a one
 to one map of space, so the surface stays one sheet (manifold, consistently wound, normals out).
-``bench/posture_bench.py`` makes the same part with 100,000 triangles.
+``bench/posture_bench.py`` makes the same fan with 100,000 triangles.
 """
 from __future__ import annotations
 
@@ -60,18 +67,104 @@ def fan(rings: int = 48, sectors: int = 320, wall: int = 0):
     return V, np.concatenate([centre, quads])
 
 
+# --- the cavity insert --------------------------------------------------------------------------------------
+TOP, DEPTH, CORNER, FILLET = 20.0, 15.0, 10.0, 4.0    # block height, pocket depth, plan corner and floor fillet radii
+RIM = (35.0, 25.0, -35.0, -25.0)                    # the pocket's rim: x of the +X wall, y of +Y, x of −X, y of −Y
+OUTER, OUTER_CORNER, OUTER_DRAFT = (46.0, 36.0, -46.0, -36.0), 12.0, 5.0
+WALLS = (-15.0, 3.0, -10.0, 3.0)                    # draft of the +X, +Y, −X, −Y walls, degrees (< 0: undercut)
+SIDE_PTS, CORNER_PTS = (10, 14), 10                 # points along the X and the Y sides, and round a corner
+# rows down a wall, along a fillet; rings over the floor and the base. Rows of 2 mm keep the corners (blends of an
+# undercut's and a drafted wall's profiles) smooth: with rows of 5 mm their facets' creases left slivers only
+# grazing tilts reach (0.8 mm² at 0.4 mm cells, a fourth posture)
+WALL_ROWS, FILLET_ROWS, FLOOR_RINGS = 6, 10, 4
+
+
+def wall_profile(draft_deg: float) -> np.ndarray:
+    """(u, ζ) down a wall, from the rim to the floor: u inward from the rim, ζ down from the top (mm);
+    the straight wall (``WALL_ROWS`` rows) then the floor fillet (``FILLET_ROWS``), tangent to both."""
+    a = np.radians(draft_deg)
+    foot = DEPTH - FILLET + FILLET * np.sin(a)                 # where the fillet meets the wall
+    s = np.linspace(0, 1, WALL_ROWS + 1)
+    uc = (FILLET + (DEPTH - FILLET) * np.sin(a)) / np.cos(a)   # the fillet's centre, inward from the rim
+    b = a + (np.pi / 2 - a) * np.arange(1, FILLET_ROWS + 1) / FILLET_ROWS
+    return np.concatenate([np.stack([s * foot * np.tan(a), s * foot], -1),
+                           np.stack([uc - FILLET * np.cos(b), DEPTH - FILLET + FILLET * np.sin(b)], -1)])
+
+
+def corner_centres(sides, radius: float) -> np.ndarray:
+    xp, yp, xm, ym = sides
+    return np.array([[xp - radius, yp - radius], [xm + radius, yp - radius], [xm + radius, ym + radius],
+                     [xp - radius, ym + radius]])
+
+
+def rounded_loop(sides, u, z, radius: float) -> np.ndarray:
+    """A closed loop counter-clockwise from above: the sides +X, +Y, −X, −Y at ``sides`` moved inward
+    by ``u`` (4,) at heights ``z`` (4,), and corner arcs about fixed centres whose radius ``radius − u``
+    and height blend smoothly from one side's to the next (the same points on every loop)."""
+    centres = corner_centres(sides, radius)
+    pts = []
+    for k in range(4):
+        nxt, n = (k + 1) % 4, SIDE_PTS[k % 2]
+        c0, c1, t = centres[k - 1], centres[k], np.arange(n) / n
+        pos = np.full(n, sides[k] - u[k] * (1 if k < 2 else -1))
+        along = c0[1 - k % 2] + (c1[1 - k % 2] - c0[1 - k % 2]) * t
+        xy = (pos, along) if k % 2 == 0 else (along, pos)
+        pts.append(np.stack([*xy, np.full(n, z[k])], -1))
+        t = np.arange(CORNER_PTS) / CORNER_PTS
+        w = t * t * (3 - 2 * t)
+        phi = np.pi / 2 * (k + t)
+        r = radius - ((1 - w) * u[k] + w * u[nxt])
+        pts.append(np.stack([c1[0] + r * np.cos(phi), c1[1] + r * np.sin(phi), (1 - w) * z[k] + w * z[nxt]], -1))
+    return np.concatenate(pts)
+
+
+def _towards(loop, k: int, n: int) -> np.ndarray:
+    """The loop scaled by k/n towards the middle of its bounding box (it is convex)."""
+    mid = 0.5 * (loop.min(0) + loop.max(0))
+    return mid + (loop - mid) * k / n
+
+
+def cavity():
+    """(vertices, faces) of the cavity insert: loops from the floor's middle out and up the pocket,
+    across the top, down the outer sides and in over the base, joined by strips and closed by fans."""
+    prof = np.stack([wall_profile(d) for d in WALLS], 1)                 # (rows, 4 walls, (u, ζ))
+    pocket = [rounded_loop(RIM, p[:, 0], TOP - p[:, 1], CORNER) for p in prof][::-1]     # floor → rim
+    top = rounded_loop(OUTER, np.zeros(4), np.full(4, TOP), OUTER_CORNER)
+    base = rounded_loop(OUTER, np.full(4, -TOP * np.tan(np.radians(OUTER_DRAFT))), np.zeros(4), OUTER_CORNER)
+    loops = ([_towards(pocket[0], k, FLOOR_RINGS) for k in range(1, FLOOR_RINGS)] + pocket
+             + [0.5 * (pocket[-1] + top), top, base]
+             + [_towards(base, k, FLOOR_RINGS) for k in range(FLOOR_RINGS - 1, 0, -1)])
+    ends = [_towards(pocket[0], 0, 1)[0], _towards(base, 0, 1)[0]]
+    n = len(loops[0])
+    V = np.concatenate([ends[:1], *loops, ends[1:]])
+    idx = 1 + np.arange(len(loops) * n).reshape(len(loops), n)
+    nxt = np.roll(idx, -1, axis=1)
+    a, b, c, d = idx[:-1], idx[1:], nxt[1:], nxt[:-1]
+    quads = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)])
+    first = np.stack([np.zeros(n, np.int64), idx[0], nxt[0]], 1)
+    last = np.stack([np.full(n, len(V) - 1), nxt[-1], idx[-1]], 1)
+    return V, np.concatenate([first, quads, last])
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default=str(Path(__file__).resolve().parent.parent / "data_samples/posture/fan.ply"))
-    ap.add_argument("--rings", type=int, default=48)
-    ap.add_argument("--sectors", type=int, default=320)
+    ap.add_argument("--part", choices=("cavity", "fan", "both"), default="both")
+    ap.add_argument("--out", help="the file (with one --part); default data_samples/posture/<part>.ply")
+    ap.add_argument("--rings", type=int, default=48, help="the fan's polar rings")
+    ap.add_argument("--sectors", type=int, default=320, help="the fan's sectors")
     args = ap.parse_args()
     import trimesh
-    V, F = fan(args.rings, args.sectors)
-    mesh = trimesh.Trimesh(V, F, process=False)
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    mesh.export(args.out, encoding="binary")
-    print(f"{args.out}: {len(F)} triangles, {mesh.area:.0f} mm², winding consistent {mesh.is_winding_consistent}")
+    parts = ("cavity", "fan") if args.part == "both" else (args.part,)
+    if args.out and len(parts) > 1:
+        ap.error("--out needs one --part")
+    for name in parts:
+        V, F = cavity() if name == "cavity" else fan(args.rings, args.sectors)
+        mesh = trimesh.Trimesh(V, F, process=False)
+        out = Path(args.out or Path(__file__).resolve().parent.parent / f"data_samples/posture/{name}.ply")
+        out.parent.mkdir(parents=True, exist_ok=True)
+        mesh.export(out, encoding="binary")
+        print(f"{out}: {len(F)} triangles, {mesh.area:.0f} mm², winding consistent {mesh.is_winding_consistent}, "
+              f"watertight {mesh.is_watertight}" + (f", {mesh.volume:.0f} mm³" if mesh.is_watertight else ""))
 
 
 if __name__ == "__main__":

@@ -19,7 +19,6 @@ import yaml
 from click.testing import CliRunner
 
 from pipeline.cli import main
-from pipeline.config import load_workflow
 from tests.ncprograms import raster_program
 
 WF = {
@@ -289,9 +288,10 @@ def test_workflow_errors_name_the_key(tmp_path, patch, needle):
 
 
 def test_repo_workflow_is_valid():
+    from pipeline.jobs import load_any
     root = Path(__file__).resolve().parent.parent
     for wf in (root / "workflows").glob("*.yaml"):
-        load_workflow(wf)
+        load_any(wf)
 
 
 BOX_PROGRAM = b"""%
