@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
@@ -271,3 +272,36 @@ def test_with_scheduled_feeds_every_cutting_pass_is_predicted(tmp_path):
     assert predicted["without"] < cutting and predicted["with"] == cutting      # every level is under 89.9°
     f = pd.read_parquet(tmp_path / "with" / "out" / "tables" / "feeds")
     assert f.set_index("pass_id").peak_deflection_um[sorted(cutting)].notna().all()
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 10_000))
+def test_the_rounds_predict_the_program_at_its_scheduled_feeds(seed):
+    """``correct_blocks`` gives the next round the scheduled feeds: split again, every pass runs at
+    the slowest scheduled feed of the passes over its blocks in the first round (found here by a
+    loop over passes and blocks), and blocks no pass schedules keep the programmed feed."""
+    from stages import correct_blocks
+    from stages.nc.moves import split_blocks
+    from stages.nc.reader import parse_program
+    from tests.correct_cases import SPLIT
+    blocks, _ = parse_program(_program(), "cyl.nc", "cyl")
+    passes = split_blocks(blocks, SPLIT)
+    rng = np.random.default_rng(seed)
+    pick = np.flatnonzero(rng.random(passes.num_rows) < 0.5)
+    new = rng.uniform(100.0, 900.0, pick.size)
+    feeds = pa.table({"pass_id": passes.column("pass_id").take(pick), "feed_new_mm_min": new})
+    empty = pa.table({"block_no": pa.array([], pa.int64())})
+    out = correct_blocks.run({"blocks@first": blocks, "corrected@previous": empty, "passes@first": passes,
+                              "feeds@first": feeds}, {})["blocks"].to_pandas().set_index("block_no")
+    want = blocks.to_pandas().set_index("block_no").feed_mm_min.copy()
+    slowest = {}
+    p = passes.to_pandas()
+    for k, f in zip(pick, new):
+        for b in range(p.block_no[k], p.block_end[k] + 1):
+            slowest[b] = min(slowest.get(b, np.inf), f)
+    for b, f in slowest.items():
+        want[b] = f
+    np.testing.assert_allclose(out.feed_mm_min.to_numpy(), want.to_numpy())
+    again = split_blocks(pa.Table.from_pandas(out.reset_index(), preserve_index=False), SPLIT).to_pandas()
+    for _, r in again[again.motion.isin([1, 2, 3])].iterrows():
+        assert r.feed_mm_min == pytest.approx(want[r.block_end])
