@@ -260,7 +260,7 @@ def _cell_quantiles(group, lev, b, n_phi: int, value, weight, m: int) -> np.ndar
 
 
 def chip_limit(depth_mm, ramp):
-    """The largest chip the material allows a descending pass, per footprint quantile (NaN: none).
+    """The largest chip the material allows a descending pass, per quantile of its cells (NaN: none).
 
     A tooth removes the material between its edge and the surface the tooth before it left, fz
     back along the feed v. Going back along v from an envelope point of a pass that descends at
