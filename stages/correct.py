@@ -5,8 +5,8 @@ to the path they were made for, so every round applies its move to the ORIGINAL 
 ``passes@first``): the command that leaves the original surface is the fixed point P = P0 − e(P)·n
 (seed 003's iterative derivation). A pass this round did not predict keeps its round-1 error
 (``errors@first``). ``generating@first`` (the original program's surfaces), the ``nominal`` model
-(the surfaces the job's other programs finish) and the tool drive the gouge limit. The stage graph repeats the chain from ``correct_blocks`` to here until
-:func:`converged`.
+(the surfaces the job's other programs finish) and the tool drive the gouge limit. The stage graph
+repeats the chain from ``correct_blocks`` to here until :func:`converged`.
 
 With a ``drift:`` section every vertex also gets the thermal drift compensation
 (:mod:`stages.thermal.compensate`: the drift the model predicts when the tool reaches it, the

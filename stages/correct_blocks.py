@@ -36,4 +36,5 @@ def run(inputs: dict, params: dict) -> dict[str, pa.Table]:
     f = block_feeds(inputs["blocks@first"], inputs["passes@first"], feeds)
     i = blocks.schema.get_field_index("feed_mm_min")
     new = np.where(np.isfinite(f), f, col(blocks, "feed_mm_min"))
-    return {"blocks": blocks.set_column(i, blocks.schema.field(i), pa.array(new, blocks.schema.field(i).type, mask=np.isnan(new)))}
+    field = blocks.schema.field(i)
+    return {"blocks": blocks.set_column(i, field, pa.array(new, field.type, mask=np.isnan(new)))}
