@@ -35,9 +35,7 @@ def sections_png(rows, theta, z_mm, workpiece_radius_mm: float, path, title: str
         ax.axis("off")
     if title:
         fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100, format="png")
-    plt.close(fig)
+    _save(plt, fig, path)
 
 
 def view3d_png(r, theta, z_mm, path, title: str = "", rings: int = 60) -> None:
@@ -63,6 +61,10 @@ def view3d_png(r, theta, z_mm, path, title: str = "", rings: int = 60) -> None:
     ax.set_zlabel("y (mm)")
     if title:
         ax.set_title(title, fontsize=10)
+    _save(plt, fig, path)
+
+
+def _save(plt, fig, path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=100, format="png")
     plt.close(fig)
