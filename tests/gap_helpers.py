@@ -150,3 +150,21 @@ def repeated_fits(kind: str, truth: dict, noise_um: float, draws: int, rng) -> t
             fits[k].append(p[k])
             ses[k].append(s[k])
     return {k: np.array(v) for k, v in fits.items()}, {k: np.array(v, float) for k, v in ses.items()}
+
+
+def cli(*args):
+    """``pipeline`` with ``args`` (any path-like or number becomes text), exceptions raised."""
+    from click.testing import CliRunner
+
+    from pipeline.cli import main
+    return CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
+
+
+def simulate_runout_then_diagnose(workflow, measured) -> None:
+    """The gap job on ``workflow``: a 10 µm runout machined on the virtual machine and probed on the
+    sample plan (noise 0.3 µm, seed 3) into ``measured``, then diagnosed (``<out>/gap``)."""
+    r = cli("simulate", workflow, "--effect", "runout:e_um=10", "--noise-um", "0.3", "--seed", "3",
+            "--plan", SAMPLE / "plan.csv", "--out", measured)
+    assert r.exit_code == 0, r.output
+    r = cli("diagnose", workflow, "--measurements", measured)
+    assert r.exit_code == 0, r.output

@@ -17,7 +17,7 @@ from click.testing import CliRunner
 
 from stages.gap.effects import LIMITS
 from stages.gap.measurements import points_and_normals, read_measurements
-from tests.gap_helpers import MAT, RIGID, SAMPLE, TOL, fresh_rng
+from tests.gap_helpers import MAT, RIGID, SAMPLE, TOL, cli, fresh_rng, simulate_runout_then_diagnose
 
 
 @pytest.fixture(scope="module")
@@ -64,14 +64,8 @@ def test_cli_simulate_writes_a_measurement_file_the_reader_accepts(two_rows, tmp
 def test_cli_run_simulate_diagnose_end_to_end_on_two_rows(two_rows, tmp_path):
     """The whole job on the first two rows of the sample: prediction through the render chain, a
     runout of 10 µm on the virtual machine, the diagnosis with its tables, summary and report."""
-    from pipeline.cli import main
     wf = two_rows / "wf.yaml"
-    run = lambda *a: CliRunner().invoke(main, [str(x) for x in a], catch_exceptions=False)  # noqa: E731
-    r = run("simulate", wf, "--effect", "runout:e_um=10", "--noise-um", "0.3", "--seed", "3",
-            "--plan", SAMPLE / "plan.csv", "--out", tmp_path / "m.csv")
-    assert r.exit_code == 0, r.output
-    r = run("diagnose", wf, "--measurements", tmp_path / "m.csv")
-    assert r.exit_code == 0, r.output
+    simulate_runout_then_diagnose(wf, tmp_path / "m.csv")
     g = two_rows / "out" / "gap"
     s = json.loads((g / "summary.json").read_text())
     assert s["effect"] == "runout" and abs(s["params"]["runout"]["e_um"] - 10.0) <= 2.0
@@ -105,10 +99,10 @@ def test_cli_run_simulate_diagnose_end_to_end_on_two_rows(two_rows, tmp_path):
     assert pts.num_rows == s["n_points"] and eff.column("effect").to_pylist()[0] == "runout"
     assert json.loads(eff.column("params_se").to_pylist()[0]) == pytest.approx(se)
     # with a reference part (no effect, another noise draw) the same calibration as the blind check's
-    r = run("simulate", wf, "--noise-um", "0.3", "--seed", "4", "--plan", SAMPLE / "plan.csv",
+    r = cli("simulate", wf, "--noise-um", "0.3", "--seed", "4", "--plan", SAMPLE / "plan.csv",
             "--out", tmp_path / "ref.csv")
     assert r.exit_code == 0, r.output
-    r = run("diagnose", wf, "--measurements", tmp_path / "m.csv", "--reference", tmp_path / "ref.csv",
+    r = cli("diagnose", wf, "--measurements", tmp_path / "m.csv", "--reference", tmp_path / "ref.csv",
             "--out", tmp_path / "cal")
     assert r.exit_code == 0, r.output
     c = json.loads((tmp_path / "cal" / "gap" / "summary.json").read_text())
@@ -125,5 +119,5 @@ def test_cli_run_simulate_diagnose_end_to_end_on_two_rows(two_rows, tmp_path):
     assert c["rms_after_um"] < 0.5 * c["rms_before_um"] and c["rms_after_um"] <= s["rms_after_um"] * 1.25
     bad = (tmp_path / "m.csv").read_text().splitlines()
     (tmp_path / "dup.csv").write_text("\n".join(bad + [bad[1]]) + "\n")
-    r = CliRunner().invoke(main, ["diagnose", str(wf), "--measurements", str(tmp_path / "dup.csv")])
+    r = cli("diagnose", wf, "--measurements", tmp_path / "dup.csv")
     assert r.exit_code == 2 and "duplicated point id" in r.output

@@ -15,10 +15,9 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
-from click.testing import CliRunner
 
-from pipeline.cli import main
 from pipeline.config import WorkflowError, load_workflow
+from tests.gap_helpers import cli
 from tests.test_engine import BOX_PROGRAM, WF
 
 SMALL = {"name": "m", "programs": "nc/*.nc",
@@ -71,14 +70,13 @@ def test_run_with_overlay_changes_the_prediction_and_names_the_overlay(tmp_path)
     """tool.runout_um = 6 µm by overlay: the errors' runout part becomes ±6·sin q (0 without it);
     parse stays cached; run.json and the report name the overlay."""
     wf = box_project(tmp_path)
-    invoke = lambda *a: CliRunner().invoke(main, [str(x) for x in a], catch_exceptions=False)  # noqa: E731
-    r = invoke("run", wf, "--workers", "1", "-q")
+    r = cli("run", wf, "--workers", "1", "-q")
     assert r.exit_code == 0, r.output
     out = tmp_path / "out"
     before = pd.read_parquet(out / "tables" / "errors")
     assert np.all(before.err_runout_um == 0) and json.loads((out / "run.json").read_text())["overlay"] == []
     ov = write(tmp_path / "upd" / "model_update.yaml", {"tool": {"runout_um": 6.0}})
-    r = invoke("run", wf, "--overlay", ov, "--workers", "1", "-q")
+    r = cli("run", wf, "--overlay", ov, "--workers", "1", "-q")
     assert r.exit_code == 0, r.output
     run = json.loads((out / "run.json").read_text())
     assert run["overlay"] == [str(ov)]
@@ -89,7 +87,7 @@ def test_run_with_overlay_changes_the_prediction_and_names_the_overlay(tmp_path)
     assert not np.allclose(after.err_um, before.err_um)
     page = (out / "report" / "index.html").read_text()
     assert f"Overlay: {ov}" in page
-    r = invoke("status", wf, "--overlay", ov, "--json")
+    r = cli("status", wf, "--overlay", ov, "--json")
     assert r.exit_code == 0 and all(row["pending"] == 0 for row in json.loads(r.output))
 
 
@@ -129,7 +127,7 @@ def test_diagnose_writes_a_model_update_of_the_fitted_runout(tmp_path):
     """The first two rows of the gap sample, a 10 µm runout on the virtual machine: model_update.yaml
     sets tool.runout_um to the diagnosed e of summary.json, and a run with it as overlay predicts
     the runout part ±e·sin q."""
-    from tests.gap_helpers import MAT, SAMPLE
+    from tests.gap_helpers import MAT, SAMPLE, simulate_runout_then_diagnose
     lines = (SAMPLE / "gap_t1.nc").read_text().splitlines()
     (tmp_path / "two.nc").write_text("\n".join(lines[:49] + ["G0 Z10.", "M5", "M30", "%"]) + "\n")
     for f in ("stock.stl", "plan.csv"):
@@ -141,12 +139,7 @@ def test_diagnose_writes_a_model_update_of_the_fitted_runout(tmp_path):
         "machine": {"frf": {"x": [{"fn_hz": 900, "zeta": 0.03, "k_n_per_um": 8.0}],
                             "y": [{"fn_hz": 950, "zeta": 0.03, "k_n_per_um": 9.0}]}},
         "prune": {"min_contact_deg": 0}, "split": {"merge_max_mm": 0.001}, "output": "out"})
-    invoke = lambda *a: CliRunner().invoke(main, [str(x) for x in a], catch_exceptions=False)  # noqa: E731
-    r = invoke("simulate", wf, "--effect", "runout:e_um=10", "--noise-um", "0.3", "--seed", "3",
-               "--plan", SAMPLE / "plan.csv", "--out", tmp_path / "m.csv")
-    assert r.exit_code == 0, r.output
-    r = invoke("diagnose", wf, "--measurements", tmp_path / "m.csv")
-    assert r.exit_code == 0, r.output
+    simulate_runout_then_diagnose(wf, tmp_path / "m.csv")
     g = tmp_path / "out" / "gap"
     s = json.loads((g / "summary.json").read_text())
     e = s["params"]["runout"]["e_um"]
@@ -156,7 +149,7 @@ def test_diagnose_writes_a_model_update_of_the_fitted_runout(tmp_path):
     assert s["overlay"]["file"] == str(g / "model_update.yaml")
     assert s["overlay"]["applied"]["runout"] == {"tool.runout_um": pytest.approx(e, abs=1e-9)}
     assert set(s["overlay"]["unapplied"]) == {k for k in s["params"] if k in ("servo_corner", "machine_geometry")}
-    r = invoke("run", wf, "--overlay", g / "model_update.yaml", "--until", "errors", "--workers", "1", "-q")
+    r = cli("run", wf, "--overlay", g / "model_update.yaml", "--until", "errors", "--workers", "1", "-q")
     assert r.exit_code == 0, r.output
     err = pd.read_parquet(tmp_path / "out" / "tables" / "errors")
     q = np.radians(err.contact_deg.to_numpy())
