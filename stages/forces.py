@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 
 from stages import InputError
 from stages.cutting.forces import (
@@ -80,9 +81,11 @@ def run(inputs: dict, params: dict, shard: tuple[int, int] | None = None) -> dic
     # a descent into material thinner than the feed per tooth cuts only that material per tooth
     chip = fz
     if "chip_limit_mm" in engagement.column_names:
-        lim = engagement.column("chip_limit_mm").to_pylist()
-        width = max((len(v) for v in lim if v), default=0)
-        limits = np.array([v if v else [np.nan] * width for v in lim], float).reshape(len(lim), width)
+        lim = engagement.column("chip_limit_mm").combine_chunks()
+        n = pc.fill_null(pc.list_value_length(lim), 0).to_numpy().astype(np.int64)
+        limits = np.full((len(n), int(n.max(initial=0))), np.nan)
+        row = np.repeat(np.arange(len(n)), n)
+        limits[row, np.arange(row.size) - np.repeat(np.cumsum(n) - n, n)] = lim.flatten().to_numpy()
         chip = effective_feed_per_tooth(fz, limits)
         chip = np.where(chip > 0, chip, fz)          # no material in the footprint: the grid has no chip either
     n_z = engagement.column("n_z").to_numpy()
