@@ -57,3 +57,24 @@ def test_catalogue_effect_and_noise_are_not_unexplained():
     assert res["effects"][:1] == ["thermal_drift"] and res["effect"] == "thermal_drift", f"seed {seed}: {res['effects']}"
     res = diagnose_points(associated(g.normal(0, sigma, len(pts))), None)
     assert res["effect"] == "none" and res["unexplained"] is None, f"seed {seed}: {res['effect']} {res['unexplained']}"
+
+
+def test_two_levels_are_no_period_and_a_window_reports_its_own_mean():
+    """Points on two floors 0.6 mm apart (normals +z), noise plus a 1 µm step between the floors:
+    on two levels of z any period fits, so no period along z is reported; a local window found
+    reports the mean of the residual over its own points (this file's ball search)."""
+    from stages.gap.unexplained import periodic_scan, unexplained
+    seed, g = fresh_rng()
+    x, y = np.meshgrid(np.arange(0, 10, 0.08), np.arange(0, 5, 0.4))     # 0.08 mm apart: periods down to 0.24 mm
+    x, y = x.ravel(), y.ravel()
+    z = np.where(x < 5, -2.5, -1.9)
+    sigma = g.uniform(0.3, 0.6)
+    r = (z > -2.0) * 1.0 + g.normal(0, sigma, len(x))
+    F = {"x_mm": x, "y_mm": y, "z_mm": z, "nx": 0 * x, "ny": 0 * x, "nz": 1 + 0 * x}
+    per = periodic_scan(F, r, sigma)
+    assert per is None or per["axis"] != "z", (seed, per)
+    loc = (unexplained(F, r, sigma) or {}).get("local")
+    if loc is not None:
+        d = np.linalg.norm(np.c_[x, y, z] - loc["centre_mm"], axis=1)
+        inside = d <= loc["radius_mm"] + 1e-9
+        assert loc["n_points"] == inside.sum() and abs(loc["mean_um"] - r[inside].mean()) < 1e-9, (seed, loc)

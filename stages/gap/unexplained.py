@@ -9,7 +9,8 @@ asks of an effect (half of hypot(σ, model floor)):
   a·sin(2πc/P) + b·cos(2πc/P) along each direction the normals see (RMS of n_j ≥ ``MIN_NORMAL``),
   fitted by least squares with a constant; its gain in σ² is χ² with 2k degrees of freedom without
   such an error (a Lomb–Scargle periodogram generalised to the offset's direction). Periods from two
-  cycles over the points' span down to three point spacings; the best is refined on a finer grid.
+  cycles over the points' span down to three point spacings, where the points' phases spread round
+  the cycle (on two levels of an axis any period fits); the best is refined on a finer grid.
 - localised: the mean of r within a ball of radius ρ around each point, ρ a sixteenth, eighth and
   quarter of the part's largest extent; z = Σr/(σ√k) is standard normal without such an error.
 
@@ -29,8 +30,9 @@ from stages.gap.fit import ALPHA
 
 MIN_NORMAL = 0.2          # RMS of a normal component below which the offset along it is not fitted
 SHRINK_CLAIM = 0.5        # held-out shrink the chosen effects need to be claimed next to found structure
-MAX_SCAN_POINTS = 4000
-MAX_PERIODS = 200         # independent periods tried per axis at most    # the scans use at most this many points (drawn with a fixed seed)
+MAX_SCAN_POINTS = 4000    # the scans use at most this many points (drawn with a fixed seed)
+MAX_PERIODS = 200         # independent periods tried per axis at most
+MIN_PHASE_COVER = 0.1     # a fifth of evenly spread phases' (``_phase_cover``)
 _AXES = ("x", "y", "z")
 
 
@@ -86,6 +88,7 @@ def periodic_scan(F: dict, r: np.ndarray, sigma: float, alpha: float = ALPHA) ->
     X = _basis(pts[:, ax], nrm[:, dirs], f0)
     beta = np.linalg.lstsq(X, r, rcond=None)[0]
     fitted = X[:, 1:] @ beta[1:]
+    fitted -= fitted.mean()                                   # the constant is not structure
     return {"axis": _AXES[ax], "period_mm": 1.0 / f0, "amplitude_um": math.sqrt(2.0) * float(np.std(fitted)),
             "offset_um": {_AXES[d]: float(math.hypot(beta[1 + 2 * k], beta[2 + 2 * k])) for k, d in enumerate(dirs)},
             "gain_sigma2": gain, "threshold_sigma2": thr, "rms_um": float(np.std(fitted)), "_fit": fitted}
@@ -188,11 +191,24 @@ def _basis(c: np.ndarray, nd: np.ndarray, f: float) -> np.ndarray:
     return np.stack(cols, 1)
 
 
+def _phase_cover(c: np.ndarray, f: float) -> float:
+    """Smallest eigenvalue of the mean Gram matrix of (1, cos φ, sin φ), φ = 2πfc: 0.5 for phases
+    spread round the cycle, 0 when they fall on two values (points on two levels of the axis: any
+    period fits them)."""
+    w = 2 * np.pi * f * c
+    C1, S1, C2, S2 = np.mean(np.cos(w)), np.mean(np.sin(w)), np.mean(np.cos(2 * w)), np.mean(np.sin(2 * w))
+    G = np.array([[1.0, C1, S1], [C1, (1 + C2) / 2, S2 / 2], [S1, S2 / 2, (1 - C2) / 2]])
+    return float(np.linalg.eigvalsh(G)[0])
+
+
 def _gains(c: np.ndarray, nd: np.ndarray, r: np.ndarray, freqs: np.ndarray) -> np.ndarray:
-    """SSE reduction (µm²) of the periodic offset over a constant, per frequency."""
+    """SSE reduction (µm²) of the periodic offset over a constant, per frequency; 0 where the points'
+    phases do not determine a sinusoid (``_phase_cover`` below ``MIN_PHASE_COVER``)."""
     sse0 = float(np.sum((r - r.mean()) ** 2))
     out = np.zeros(len(freqs))
     for i, f in enumerate(freqs):
+        if _phase_cover(c, f) < MIN_PHASE_COVER:
+            continue
         X = _basis(c, nd, f)
         beta = np.linalg.lstsq(X, r, rcond=None)[0]
         out[i] = sse0 - float(np.sum((r - X @ beta) ** 2))
