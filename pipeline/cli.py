@@ -274,6 +274,8 @@ def diagnose(workflow, measurements, out, reference):
         click.echo(f"error: {e}", err=True)
         sys.exit(2)
     click.echo(f"effect: {s['effect']} (all: {s['effects']}); params {json.dumps(s['params'])}")
+    for e in s.get("possible", []):
+        click.echo(f"possible, not claimed: {e}" + (f" ({s['possible_why'][e]})" if e in s.get("possible_why", {}) else ""))
     click.echo(f"held-out RMS {s['rms_before_um']:.3f} -> {s['rms_after_um']:.3f} um (shrink {s['shrink']:.1%}); "
                f"{len(s['where'])} regions beyond noise; {s['n_points']} points, {s['n_rejected']} rejected")
     pl = s["plan"]

@@ -12,6 +12,7 @@ import pytest
 
 from stages.gap.diagnose import diagnose
 from stages.gap.effects import catalogue
+from stages.gap.observability import restrict
 from stages.gap.fit import fit_joint, solve_bounded
 from stages.gap.plans import plan_counts, plan_mask
 from tests.gap_helpers import associated, brute_force_features, fresh_rng, sample
@@ -47,6 +48,59 @@ def test_drift_along_an_unseen_axis_is_not_observable_and_stays_nominal():
     assert abs(p["ax_um"] - A[0]) <= 0.2 * abs(A[0]), case
     assert abs(p["az_um"] - A[2]) <= 0.2 * abs(A[2]), case
     assert abs(p["tau_s"] - tau) <= 0.2 * tau, case
+
+
+def _floor_plan(rng, F, n_pts, lean_deg=(2.0, 4.0)):
+    """Normals of a floor plan: a third of the points lean 2–4° towards +x (ramp feet), the rest
+    point straight up; F's normals and contact angles set to them."""
+    lean = np.zeros(n_pts)
+    feet = rng.permutation(n_pts)[:n_pts // 3]
+    lean[feet] = np.radians(rng.uniform(*lean_deg, len(feet)))
+    n = np.stack([np.sin(lean), np.zeros(n_pts), np.cos(lean)], 1)
+    F["nx"], F["ny"], F["nz"], F["q_deg"] = n[:, 0], n[:, 1], n[:, 2], np.degrees(lean)
+    return n
+
+
+def test_floor_plan_sees_the_drift_z_part_only_and_claims_nothing_else():
+    """A floor plan whose ramp feet lean 2–4° towards +x: a drift A·n·(1 − e^(−t/τ)) by this file's
+    formula with an x part of 10–20 µm (0.3–1.4 µm along those normals) and a z part of 6–12 µm,
+    σ 0.3–0.6 µm. The drift is named alone — the x part left on the feet is not claimed as another
+    effect —, ax and ay are reported not observable and stay 0, az and τ within 20 %."""
+    seed, rng = fresh_rng()
+    f = brute_force_features()
+    F = associated(np.zeros(len(f["t"])))
+    n = _floor_plan(rng, F, len(f["t"]))
+    T = f["duration_s"]
+    A = np.array([rng.choice([-1, 1]) * rng.uniform(10, 20), 0.0, rng.choice([-1, 1]) * rng.uniform(6, 12)])
+    tau = rng.uniform(0.2, 0.8) * T
+    sigma = rng.uniform(0.3, 0.6)
+    y = (n @ A) * (1 - np.exp(-f["t"] / tau)) + rng.normal(0, sigma, len(n))
+    F["measured_um"], F["residual_um"] = y, y - F["predicted_um"]
+    res = diagnose(F)
+    case = f"seed {seed}: A {A}, tau {tau:.2f} s, sigma {sigma:.2f} -> {res['effects']} {res['params']}"
+    assert res["effects"] == ["thermal_drift"], case
+    obs, p = res["observability"]["thermal_drift"], res["params"]["thermal_drift"]
+    assert "not observable" in (obs["ax_um"] or "") and "not observable" in (obs["ay_um"] or ""), case
+    assert p["ax_um"] == 0.0 and p["ay_um"] == 0.0, case
+    assert abs(p["az_um"] - A[2]) <= 0.2 * abs(A[2]) and abs(p["tau_s"] - tau) <= 0.2 * tau, case
+
+
+def test_a_few_wall_points_make_an_axis_observable():
+    """The same floor plan with 8 points on walls facing +x: their normals see x fully, so ax is
+    observable however few they are; ay (no normal leans towards y) is not; with the walls leaning
+    only 9° (under the 10° a point needs) ax is not."""
+    seed, rng = fresh_rng()
+    f = brute_force_features()
+    F = associated(np.zeros(len(f["t"])))
+    n = _floor_plan(rng, F, len(f["t"]))
+    walls = rng.permutation(len(n))[:8]
+    for lean, seen in ((90.0, True), (9.0, False)):
+        F["nx"][walls], F["nz"][walls] = np.sin(np.radians(lean)), np.cos(np.radians(lean))
+        _, why = restrict(catalogue(F), F, 0.5)
+        drift = why["thermal_drift"]
+        assert (drift["ax_um"] is None) == seen and drift["ay_um"] is not None and drift["az_um"] is None, \
+            (seed, lean, drift)
+    del n
 
 
 def test_contour_centre_outside_the_measured_angles_is_fitted_inside_them():

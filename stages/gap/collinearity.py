@@ -5,10 +5,14 @@ acts, and the canonical correlation of its signature with theirs (the size test 
 """
 from __future__ import annotations
 
+import math
+from dataclasses import replace
+
 import numpy as np
+from scipy.stats import chi2
 
 from stages.gap.effects import Effect
-from stages.gap.fit import fit_joint, grid_subset, predict_effects
+from stages.gap.fit import bounds_of, fit_joint, grid_subset, lstsq_bounded, predict_effects
 
 AMBIGUOUS_RHO = 0.95  # reported as ambiguous: the chosen effect's signatures explain ≥ 90 % of the other's
 
@@ -129,3 +133,72 @@ def orthonormal_basis(X: np.ndarray) -> np.ndarray:
         return X
     U, sv, _ = np.linalg.svd(X, full_matrices=False)
     return U[:, sv > max(sv[0], 1e-300) * 1e-9] if sv.size and sv[0] > 0 else U[:, :0]
+
+
+def _bounded_fit(F, y, effects: list) -> tuple[float, list]:
+    """``effects`` [(Effect, th)] fitted jointly on all points within their bounds: (SSE µm², each
+    effect's contribution (n,) µm)."""
+    if not effects:
+        return float(y @ y), []
+    X = [e.basis(F, t) for e, t in effects]
+    beta = lstsq_bounded(np.hstack(X), y, *bounds_of(F, effects))
+    ks = np.cumsum([0] + [x.shape[1] for x in X])
+    parts = [x @ beta[ks[i]:ks[i + 1]] for i, x in enumerate(X)]
+    r = y - sum(parts)
+    return float(r @ r), parts
+
+
+def _freed(e: Effect) -> Effect:
+    return e if e.keep is None else replace(e, keep=None, n_lin=e.n_full, n_full=None)
+
+
+def held_mimics(F, y, chosen: list, sigma: float, floor_um: float, alpha: float) -> tuple[list, dict]:
+    """The chosen effects that cannot be told from the amplitudes the others hold at nominal.
+
+    An amplitude the points do not observe (``stages.gap.observability``) is held at 0, so what it
+    does on the few points that see it weakly stays in the residual, where another effect may take
+    it up: on a floor plan the x part of a thermal drift, read through the 3–4° feet of the ramps,
+    came back as a 1–2 µm tool-contour dent centred on their contact angle. With every held
+    amplitude freed (within its bounds), each chosen effect must still pay for itself next to the
+    others as the backward check asks (``stages.gap.diagnose``): its χ² gain at ``alpha`` and, where
+    it acts, an RMS of half hypot(σ, floor). One that does not is possible, not claimed; the smallest
+    goes first, then the check is repeated.
+
+    Parameters
+    ----------
+    F, y
+        As in ``stages.gap.fit``.
+    chosen : list of (Effect, tuple)
+    sigma, floor_um : float
+        Probe noise σ and the model's floor (µm).
+    alpha : float
+        False-claim rate.
+
+    Returns
+    -------
+    chosen : list of (Effect, tuple)
+        Without the effects moved to possible.
+    possible : dict
+        {effect: reason}.
+    """
+    possible = {}
+    while len(chosen) >= 2 and any(e.keep is not None for e, _ in chosen):
+        freed = [(_freed(e), t) for e, t in chosen]
+        sse_all, parts = _bounded_fit(F, y, freed)
+        for i in np.argsort([acting_rms(c) for c in parts]):
+            rest = freed[:i] + freed[i + 1:]
+            held = [e.name for e, _ in chosen[:i] + chosen[i + 1:] if e.keep is not None]
+            if not held:
+                continue
+            d_sse = _bounded_fit(F, y, rest)[0] - sse_all
+            support = max(int(np.sum(np.abs(parts[i]) > 0.1 * np.abs(parts[i]).max())), 1) if np.any(parts[i]) else len(y)
+            if (d_sse / sigma ** 2 > float(chi2.ppf(1 - alpha, chosen[i][0].n_params))
+                    and math.sqrt(max(d_sse, 0.0) / support) >= 0.5 * math.hypot(sigma, floor_um)):
+                continue
+            possible[chosen[i][0].name] = (f"cannot be told from what {', '.join(held)} would do with the "
+                                           "amplitudes these points do not observe (held at nominal)")
+            chosen = chosen[:i] + chosen[i + 1:]
+            break
+        else:
+            break
+    return chosen, possible

@@ -23,7 +23,8 @@ from scipy.stats import chi2
 
 from stages.gap.effects import catalogue
 from stages.gap.observability import nonlinear_observability, restrict
-from stages.gap.collinearity import acting_rms, collinear_size, collinearity, insample_fit, insample_sse
+from stages.gap.collinearity import (acting_rms, collinear_size, collinearity, held_mimics, insample_fit,
+                                     insample_sse)
 from stages.gap.fit import (ALPHA, blocks, bounds_of, cv_predict, fit_joint, folds, lstsq_bounded, noise_sigma, rms,
                             shrink_where_acting)
 from stages.gap.uncertainty import ambiguous_with, detection_limits, final_fit, param_uncertainty
@@ -46,7 +47,8 @@ def diagnose(F: dict, noise_um: Optional[float] = None, floor_um: float = 0.0) -
     Returns
     -------
     dict
-        effect, effects (by size), params, params_se, params_cov, params_se_info, ranking (list of
+        effect, effects (by size), possible (effects not claimed: ``held_mimics``) and possible_why,
+        params, params_se, params_cov, params_se_info, ranking (list of
         dicts), sigma_um, rms/p95/max before and after (held-out, µm), shrink, shrink_where_acting,
         detection_limits, ambiguous_with, observability, at_limits; ``_after`` (n,) the held-out residual,
         ``_contrib`` per effect (n,), ``_blocks``, ``_fold``, ``_chosen`` [(Effect, th)].
@@ -105,6 +107,10 @@ def diagnose(F: dict, noise_um: Optional[float] = None, floor_um: float = 0.0) -
         sse_base = top["sse"]
         base_pred = top["pred"]
     chosen, sse_base, base_pred = settle(F, y, fold, cat, chosen, sse_base, base_pred, sigma, floor_um)
+    n_settled = len(chosen)
+    chosen, possible = held_mimics(F, y, chosen, sigma, floor_um, ALPHA)
+    if len(chosen) < n_settled:
+        base_pred = cv_predict(F, y, fold, chosen)
     # final fit on all points: parameters and each effect's contribution
     params, contrib = {}, {}
     if chosen:
@@ -136,6 +142,7 @@ def diagnose(F: dict, noise_um: Optional[float] = None, floor_um: float = 0.0) -
     return {
         "effect": order[0] if order else "none",
         "effects": order,
+        "possible": list(possible), "possible_why": possible,
         "params": {k: params[k] for k in order},
         "params_se": {k: unc["se"][k] for k in order},
         "params_cov": unc["cov"],

@@ -308,9 +308,9 @@ def answer_unexplained(F: dict, res: dict, floor_um: float = 0.0) -> dict:
     """
     r = F["residual_um"] - sum(res["_contrib"].values(), np.zeros(len(F["residual_um"])))
     res["unexplained"] = unexplained(F, r, res["sigma_um"], floor_um)
-    res["possible"] = []
+    res.setdefault("possible", [])
     if res["unexplained"] is not None and (not res["effects"] or res["shrink"] < SHRINK_CLAIM):
-        res["possible"], res["effects"], res["effect"] = list(res["effects"]), [], "unexplained"
+        res["possible"], res["effects"], res["effect"] = list(res["effects"]) + res["possible"], [], "unexplained"
     return res
 
 

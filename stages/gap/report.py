@@ -14,7 +14,7 @@ from stages.gap.observability import UNITS
 def public_summary(res: dict) -> dict:
     """The JSON-able part of a diagnosis ``res`` (``stages.gap.predictor.diagnose_points``) for
     ``summary.json``: its public keys, with ``held_out``, ``model_update`` and ``how_added``."""
-    keys = ("effect", "effects", "possible", "unexplained", "params", "params_se", "params_se_info", "params_cov",
+    keys = ("effect", "effects", "possible", "possible_why", "unexplained", "params", "params_se", "params_se_info", "params_cov",
             "where", "where_after", "sigma_um", "n_points", "n_blocks",
             "rms_before_um", "rms_after_um", "p95_before_um", "p95_after_um", "max_before_um", "max_after_um",
             "shrink", "shrink_where_acting", "ranking", "ambiguous_with",
@@ -162,7 +162,7 @@ def report(gdir: Path, F: dict, res: dict, summary: dict) -> None:
     warns = "".join(f"<p class=warn>⚠ {esc(w)}</p>" for w in plan.get("warnings", []))
     amb = "; ".join(f"{e}: cannot be told from " + ", ".join(f"{a['effect']} (correlation {a['correlation']:.3f})" for a in v)
                     for e, v in summary.get("ambiguous_with", {}).items())
-    possible = summary.get("possible", [])
+    possible, why = summary.get("possible", []), summary.get("possible_why", {})
     unexpl = summary.get("unexplained")
     answer = (", ".join(f"<b>{esc(e)}</b>" for e in summary["effects"]) or "<b>none</b>")
     if unexpl and summary["effect"] == "unexplained":
@@ -176,7 +176,8 @@ def report(gdir: Path, F: dict, res: dict, summary: dict) -> None:
 table{{border-collapse:collapse;margin:.5em 0}}td,th{{border:1px solid #bbb;padding:3px 8px;text-align:right}}
 td:first-child,th:first-child{{text-align:left}}th{{background:#eee}}.warn{{color:#a40}}img{{max-width:100%}}</style></head><body>
 <h1>Sim-to-real gap</h1>
-<p>Answer: {answer}{('; possible, not claimed: ' + ', '.join(esc(p) for p in possible)) if possible else ''}.</p>
+<p>Answer: {answer}{('; possible, not claimed: ' + ', '.join(esc(p) + (f" ({esc(why[p])})" if p in why else '')
+                                                            for p in possible)) if possible else ''}.</p>
 <p>Held-out residual RMS {fmt(summary['rms_before_um'])} → {fmt(summary['rms_after_um'])} µm (shrink {summary['shrink']:.0%}),
 P95 {fmt(summary['p95_before_um'])} → {fmt(summary['p95_after_um'])} µm, max {fmt(summary['max_before_um'])} → {fmt(summary['max_after_um'])} µm;
 noise σ {fmt(summary['sigma_um'])} µm; {summary['n_points']} points used, {summary['n_rejected']} rejected (rejected.csv).</p>
