@@ -15,4 +15,5 @@ SCHEMA = pa.schema([
     pa.field('hidden_up_to_um', pa.float64()),     # not chosen: largest RMS of it that would not be claimed
     pa.field('ambiguous_with', pa.string()),       # chosen: JSON list of effects it cannot be told from here
     pa.field('not_observable', pa.string()),       # JSON {parameter: reason}: not determined by these points (held at nominal)
+    pa.field('possible', pa.string()),             # why it is possible, not claimed (null: claimed or not chosen)
 ])

@@ -103,6 +103,42 @@ def test_a_few_wall_points_make_an_axis_observable():
     del n
 
 
+def test_an_effect_the_held_x_part_would_explain_is_possible_not_claimed():
+    """Floor plan, ramp feet leaning 2–4° towards +x. A drift whose x part (25–40 µm: 0.9–2.8 µm on
+    the feet) is held at nominal, next to a contour dent fitted on the feet: the contour is moved to
+    possible, with the drift named in the reason. A real dent (this file's formula, 2–4 µm at 1–3°)
+    next to a drift without x part stays claimed. The gap_effects table carries the reason."""
+    from dataclasses import replace as _replace
+
+    from stages.gap.collinearity import held_mimics
+    from stages.gap.tables import gap_effects_table
+    seed, rng = fresh_rng()
+    f = brute_force_features()
+    F = associated(np.zeros(len(f["t"])))
+    n = _floor_plan(rng, F, len(f["t"]))
+    cat, _ = restrict(catalogue(F), F, 0.4)
+    drift = next(e for e in cat if e.name == "thermal_drift")
+    contour = _replace(next(e for e in cat if e.name == "tool_contour"), grid=[(3.0, 3.0)])
+    tau = 0.4 * f["duration_s"]
+    ramp = 1 - np.exp(-f["t"] / tau)
+    noise = rng.normal(0, 0.4, len(n))
+    q = F["q_deg"]
+    for ax, dent, claimed in ((rng.uniform(25, 40), 0.0, False), (0.0, rng.uniform(2, 4), True)):
+        q0 = rng.uniform(1, 3)
+        y = (n @ [ax, 0.0, 8.0]) * ramp + dent * np.exp(-0.5 * ((q - q0) / 3.0) ** 2) + noise
+        chosen = [(drift, (tau,)), (contour, (3.0 if not dent else q0, 3.0))]
+        kept, possible = held_mimics(F, y, chosen, 0.4, 0.0, 1e-3)
+        case = f"seed {seed}: ax {ax:.1f}, dent {dent:.2f} at {q0:.2f} -> kept {[e.name for e, _ in kept]}, {possible}"
+        assert ("tool_contour" in [e.name for e, _ in kept]) == claimed, case
+        assert ("tool_contour" in possible) == (not claimed), case
+        if not claimed:
+            assert "thermal_drift" in possible["tool_contour"], case
+            res = {"ranking": [{"effect": "tool_contour", "rank": 1, "rms_before_um": 1.0, "rms_after_um": 1.0,
+                                "gain_sigma2": 0.0, "threshold_sigma2": 1.0}], "params": {}, "effects": [],
+                   "possible": list(possible), "possible_why": possible}
+            assert gap_effects_table(res).column("possible").to_pylist() == [possible["tool_contour"]], case
+
+
 def test_contour_centre_outside_the_measured_angles_is_fitted_inside_them():
     """A dent a·exp(−½((q − q0)/w)²) by this file's formula centred 3–10° below the smallest
     measured contact angle: its fitted centre lies within the measured range and its width within

@@ -310,6 +310,9 @@ def answer_unexplained(F: dict, res: dict, floor_um: float = 0.0) -> dict:
     res["unexplained"] = unexplained(F, r, res["sigma_um"], floor_um)
     res.setdefault("possible", [])
     if res["unexplained"] is not None and (not res["effects"] or res["shrink"] < SHRINK_CLAIM):
+        why = (f"took up part of structure the catalogue does not explain (held-out shrink {res['shrink']:.0%}, "
+               f"under the {SHRINK_CLAIM:.0%} a claim needs next to it)")
+        res["possible_why"] = {**{e: why for e in res["effects"]}, **res.get("possible_why", {})}
         res["possible"], res["effects"], res["effect"] = list(res["effects"]) + res["possible"], [], "unexplained"
     return res
 

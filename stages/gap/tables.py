@@ -73,4 +73,6 @@ def gap_effects_table(res: dict) -> pa.Table:
                                    pa.string()),
         "not_observable": pa.array([json.dumps({k: w for k, w in res.get("observability", {}).get(r["effect"], {}).items()
                                                 if w}) for r in rows], pa.string()),
+        "possible": pa.array([res.get("possible_why", {}).get(r["effect"]) if r["effect"] in res.get("possible", []) else None
+                              for r in rows], pa.string()),
     })
