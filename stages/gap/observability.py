@@ -12,11 +12,11 @@ observable part.
 An amplitude that moves the tool along one machine axis (the drift's ax, ay, az; the geometry's
 coefficients) is seen only through the points whose normal leans at least ``MIN_LEAN_DEG`` towards
 that axis (|n_axis| ≥ sin ``MIN_LEAN_DEG``): the test above takes its signature on those points alone
-(the other amplitudes still fitted on all). A point
-leaning less reads the axis through a lever under 0.17, so any error of the model along the
-normal's main axis (probe radius, form, a drift's other part) reaches the estimate amplified more
-than 5.8×: on a floor plan a fraction of a µm along z would be reported as µm of x. A floor-only
-plan therefore sees a thermal drift's z part and not its x/y parts, whatever its number of points.
+(the other amplitudes still fitted on all). A point leaning less reads the axis through a lever
+under 0.17, so any error of the model along the normal's main axis (probe radius, form, a drift's
+other part) reaches the estimate amplified more than 5.8×: on a floor plan a fraction of a µm along
+z would be reported as µm of x. A floor-only plan therefore sees a thermal drift's z part and not
+its x/y parts, whatever its number of points; a handful of wall points makes x observable.
 """
 from __future__ import annotations
 
