@@ -65,7 +65,9 @@ def fmt(v, se=None) -> str:
 
 
 def _range(a, b, unit="") -> str:
-    return f"{fmt(a)}–{fmt(b)}{(' ' + unit) if unit else ''}"
+    """'a … b unit', or one value when both read the same."""
+    lo, hi = fmt(a), fmt(b)
+    return f"{lo if lo == hi else f'{lo} … {hi}'}{(' ' + unit) if unit else ''}"
 
 
 def _maps(gdir: Path, F: dict, after) -> None:
@@ -111,9 +113,14 @@ def _maps(gdir: Path, F: dict, after) -> None:
     plt.close(fig)
 
 
+class _Why(str):
+    """A table cell of prose: wraps and reads left to right."""
+
+
 def _table(head, rows) -> str:
     th = "".join(f"<th>{h}</th>" for h in head)
-    body = "".join("<tr>" + "".join(f"<td>{c}</td>" for c in r) + "</tr>" for r in rows)
+    body = "".join("<tr>" + "".join(f"<td class=why>{c}</td>" if isinstance(c, _Why) else f"<td>{c}</td>" for c in r)
+                   + "</tr>" for r in rows)
     return f"<table><tr>{th}</tr>{body}</table>"
 
 
@@ -145,7 +152,7 @@ def report(gdir: Path, F: dict, res: dict, summary: dict) -> None:
             unit = UNITS.get(k, "")
             prm.append([esc(e), k, f"{fmt(v, se)} {unit}", fmt(se, se) if se is not None else "–",
                         f"{fmt(v - 2 * se, se)} … {fmt(v + 2 * se, se)}" if se is not None else "–",
-                        "yes" if why is None else f"<span class=warn>no</span>: {esc(why)}"])
+                        _Why("yes" if why is None else f"<span class=warn>no</span>: {esc(why)}")])
     obs_rows = [[esc(e), ", ".join(k for k, w in d.items() if w is None) or "–",
                  ", ".join(k for k, w in d.items() if w is not None) or "–"] for e, d in obs.items()]
     ranking = [[r["rank"], esc(r["effect"]), fmt(r["rms_after_um"]), fmt(r["gain_sigma2"]), fmt(r["threshold_sigma2"]),
@@ -174,7 +181,7 @@ def report(gdir: Path, F: dict, res: dict, summary: dict) -> None:
     html = f"""<html><head><meta charset="utf-8"><title>Gap diagnosis</title>
 <style>body{{font-family:sans-serif;max-width:1150px;margin:1em auto;color:#222}}
 table{{border-collapse:collapse;margin:.5em 0}}td,th{{border:1px solid #bbb;padding:3px 8px;text-align:right}}
-td:first-child,th:first-child{{text-align:left}}th{{background:#eee}}.warn{{color:#a40}}img{{max-width:100%}}</style></head><body>
+td:first-child,th:first-child{{text-align:left}}td{{white-space:nowrap}}td.why{{white-space:normal;text-align:left}}th{{background:#eee}}.warn{{color:#a40}}img{{max-width:100%}}</style></head><body>
 <h1>Sim-to-real gap</h1>
 <p>Answer: {answer}{('; possible, not claimed: ' + ', '.join(esc(p) + (f" ({esc(why[p])})" if p in why else '')
                                                             for p in possible)) if possible else ''}.</p>
