@@ -53,29 +53,25 @@ def main():
     ap.add_argument("--kinds")
     ap.add_argument("--out")
     ap.add_argument("--summary")
-    ap.add_argument("--plan", help="the full plan (CSV) the plan kind is taken from (default: the workflow's)")
+    ap.add_argument("--plan", help="with --summary from before the blind check recorded its plan: the full plan (CSV)")
     a = ap.parse_args()
-    from pipeline.config import load_workflow
-    from pipeline.gap_jobs import measurement_spec, read_points
-    from stages.gap.measurements import points_and_normals
-    from stages.gap.plans import contact_deg, plan_mask
     if a.summary:
         s = json.loads(Path(a.summary).read_text())
-        plan = a.plan
-        spec = None
     else:
         from pipeline.gap_jobs import blind_check
         s = blind_check(a.workflow, a.cases, a.seed, a.out, pairs=a.pairs, plan_kind=a.plan_kind,
                         kinds=a.kinds.split(",") if a.kinds else None)
-        wf, base = load_workflow(a.workflow)
-        spec = measurement_spec(wf, base)
-        plan = spec.file
-    from pipeline.config import Measurements
-    pts, nrm = points_and_normals(read_points(plan, spec or Measurements(file=plan), require_deviation=False)[0])
-    m = plan_mask(pts, nrm, s.get("plan_kind") or a.plan_kind)
-    q = contact_deg(nrm[m])
-    print(json.dumps(figures(s, float(q.min()), float(q.max())), indent=2))
-
+    if "plan" in s:                     # the contact angles of the plan the blind check probed
+        qmin, qmax = s["plan"]["contact_deg"]
+    else:                               # a summary written before the blind check recorded them
+        from pipeline.config import Measurements
+        from pipeline.gap_jobs import read_points
+        from stages.gap.measurements import points_and_normals
+        from stages.gap.plans import contact_deg, plan_mask
+        pts, nrm = points_and_normals(read_points(a.plan, Measurements(file=a.plan), require_deviation=False)[0])
+        q = contact_deg(nrm[plan_mask(pts, nrm, s.get("plan_kind") or a.plan_kind)])
+        qmin, qmax = float(q.min()), float(q.max())
+    print(json.dumps(figures(s, qmin, qmax), indent=2))
 
 if __name__ == "__main__":
     main()

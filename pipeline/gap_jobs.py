@@ -24,7 +24,7 @@ from stages.gap.blind import blind_cases, check_kinds
 from stages.gap.calibration import apply_baseline, calibrate
 from stages.gap.measurements import points_and_normals, read_measurements, write_measurements
 from stages.gap.model_update import workflow_update, write_update
-from stages.gap.plans import plan_counts, plan_mask
+from stages.gap.plans import contact_deg, plan_counts, plan_mask
 from stages.gap.predictor import HOW_ADDED, Predictor, diagnose_points
 from stages.gap.probe import probe_program
 from stages.gap.report import public_summary, report
@@ -229,6 +229,8 @@ def blind_check(workflow: str, cases: int, seed: int, out: Optional[str] = None,
                           kinds=check_kinds(kinds), predictor=predictor)
     summary["workflow"] = workflow
     summary["plan_kind"] = plan_kind
+    q = contact_deg(nrm)
+    summary["plan"] = {"points": int(len(pts)), "contact_deg": [float(q.min()), float(q.max())]}
     bdir = outdir / "blind"
     bdir.mkdir(parents=True, exist_ok=True)
     (bdir / "summary.json").write_text(json.dumps(summary, indent=2, default=lambda o: o.tolist() if isinstance(
