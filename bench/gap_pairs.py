@@ -43,7 +43,7 @@ def main():
                                    workflow_stock)
     from stages.gap.associate import associate
     from stages.gap.scoring import coefficient_error, param_error
-    from stages.gap.calibration import apply_baseline, calibrate
+    from stages.gap.calibration import baseline, calibrate
     from stages.gap.measurements import measurement_table, points_and_normals
     from stages.gap.predictor import diagnose_points
     from stages.geometry.cutter import Cutter
@@ -71,7 +71,8 @@ def main():
     size = lambda eff: float(np.sqrt(np.mean((vm.probe(pts, nrm, eff, 0.0) - base_probe) ** 2)))  # noqa: E731
     geom = (pts + vm.R * nrm - [0.0, 0.0, vm.R], nrm)
     q98 = float(np.percentile(np.degrees(np.arccos(np.clip(nrm[:, 2], -1, 1))), 98))
-    out = {"seed": seed, "setup_s": round(time.perf_counter() - t0, 1), "calibration": cal, "cases": []}
+    out = {"seed": seed, "setup_s": round(time.perf_counter() - t0, 1), "calibration": {k: v for k, v in cal.items() if not k.startswith("_")},
+           "cases": []}
     for second in SECONDS:
         for _ in range(args.cases):
             wear_rms = rng.uniform(3.0, 4.5)
@@ -91,8 +92,8 @@ def main():
                 truth[second] = dict(d, ax_um=k * a[0], ay_um=k * a[1], az_um=k * a[2])
             sigma = float(rng.uniform(0.6, 0.85))
             t1 = time.perf_counter()
-            res = diagnose_points(apply_baseline(measured(truth, sigma), cal["force_scale_s0"], cal["corner_floor"]),
-                                  None, cal["floor_um"], predictor)
+            F, floor = baseline(measured(truth, sigma), cal)
+            res = diagnose_points(F, None, floor, predictor)
             order = sorted(truth, key=lambda k: -size({k: truth[k]}))
             errs = {k: (param_error(k, truth[k], res["params"][k], geom, flutes=Cutter.from_params(tool).flutes)
                         if k != "machine_geometry" else coefficient_error(truth[k], res["params"][k]))

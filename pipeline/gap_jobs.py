@@ -21,7 +21,7 @@ from pipeline.config import Measurements, load_workflow, resolve
 from stages import InputError
 from stages.gap.associate import associate
 from stages.gap.blind import blind_cases, check_kinds
-from stages.gap.calibration import apply_baseline, calibrate
+from stages.gap.calibration import baseline, calibrate
 from stages.gap.measurements import points_and_normals, read_measurements, write_measurements
 from stages.gap.model_update import workflow_update, write_update
 from stages.gap.plans import contact_deg, plan_counts, plan_mask
@@ -143,11 +143,10 @@ def diagnose_cmd(workflow: str, measurements: str, out: Optional[str] = None,
         ref, _, _ = read_points(reference, spec)
         F0, _ = associate(ref, tabs["passes"], tabs.get("errors"), tool, spec.off_part_mm, tabs.get("deflection"))
         calibration = dict(calibrate(F0, predictor), file=str(reference))
-        F = apply_baseline(F, calibration["force_scale_s0"], calibration["corner_floor"])
-        floor = calibration["floor_um"]
+        F, floor = baseline(F, calibration)
     res = diagnose_points(F, spec.noise_um, floor, predictor=predictor)
     if calibration is not None:
-        res["calibration"] = calibration
+        res["calibration"] = {k: v for k, v in calibration.items() if not k.startswith("_")}
     t2 = time.perf_counter()
     if predictor is not None and any(k in HOW_ADDED for k in res["params"]):
         # the model with the winning effects, fitted on all points: profile table and errors re-predicted

@@ -66,7 +66,7 @@ def test_two_levels_are_no_period_and_a_window_reports_its_own_mean():
     from stages.gap.unexplained import periodic_scan, unexplained
     seed, g = fresh_rng()
     x, y = np.meshgrid(np.arange(0, 10, 0.08), np.arange(0, 5, 0.4))     # 0.08 mm apart: periods down to 0.24 mm
-    x, y = x.ravel(), y.ravel()
+    x, y = x.ravel() + g.uniform(-0.01, 0.01, x.size), y.ravel() + g.uniform(-0.01, 0.01, y.size)   # no ties at a radius
     z = np.where(x < 5, -2.5, -1.9)
     sigma = g.uniform(0.3, 0.6)
     r = (z > -2.0) * 1.0 + g.normal(0, sigma, len(x))

@@ -12,7 +12,7 @@ import pyarrow as pa
 
 from stages import InputError
 from stages.gap.associate import associate
-from stages.gap.calibration import apply_baseline, calibrate
+from stages.gap.calibration import baseline, calibrate
 from stages.gap.cases import OUTSIDE, draw_pair, outside_case, outside_signature, random_case, true_order, true_sizes
 from stages.gap.measurements import measurement_table
 from stages.gap.predictor import Predictor, diagnose_points
@@ -97,7 +97,6 @@ def blind_cases(vm, passes: pa.Table, errors: Optional[pa.Table], tool, pts: np.
     err = vm.probe(pts, nrm, {}, ref_sigma, np.random.default_rng(seed + 7919))
     F0, _ = associate(measurement_table(ids, pts, nrm, err), passes, errors, tool, off_part_mm, deflection)
     calibration = dict(calibrate(F0, predictor), reference_noise_um=ref_sigma)
-    s0, corner, floor = calibration["force_scale_s0"], calibration["corner_floor"], calibration["floor_um"]
     for ci, kinds_i in enumerate(plan_cases):
         if len(kinds_i) == 2:
             truth = draw_pair(rng, kinds_i, pool, vm, pts, nrm, ctx)
@@ -109,15 +108,16 @@ def blind_cases(vm, passes: pa.Table, errors: Optional[pa.Table], tool, pts: np.
         outside = {k: outside_signature(k, v, pts, nrm) for k, v in truth.items() if k in OUTSIDE}
         if outside:
             err = vm.probe(pts, nrm, {}, sigma, rng) + sum(outside.values())
-            results.append(_outside_case(ci, truth, outside, sigma, res=diagnose_points(apply_baseline(
-                associate(measurement_table(ids, pts, nrm, err), passes, errors, tool, off_part_mm, deflection)[0],
-                s0, corner), None, floor, predictor)))
+            F, floor = baseline(associate(measurement_table(ids, pts, nrm, err), passes, errors, tool, off_part_mm,
+                                          deflection)[0], calibration)
+            results.append(_outside_case(ci, truth, outside, sigma, res=diagnose_points(F, None, floor, predictor)))
             if progress:
                 progress(ci, results[-1])
             continue
         err = vm.probe(pts, nrm, truth, sigma, rng)
         F, rej = associate(measurement_table(ids, pts, nrm, err), passes, errors, tool, off_part_mm, deflection)
-        res = diagnose_points(apply_baseline(F, s0, corner), None, floor, predictor)
+        Fb, floor = baseline(F, calibration)
+        res = diagnose_points(Fb, None, floor, predictor)
         by_size = true_order(truth, vm, pts, nrm)
         case = {"case": ci, "truth": truth, "true_order": by_size, "noise_um": sigma,
                 "true_rms_um": true_sizes(truth, vm, pts, nrm) if len(truth) >= 2 else None,
@@ -168,7 +168,7 @@ def blind_cases(vm, passes: pa.Table, errors: Optional[pa.Table], tool, pts: np.
     none = [c for c in singles if not c["truth"]]
     perr = [c["param_error"] for c in eff if "param_error" in c]
     summary = {
-        "calibration": calibration,
+        "calibration": {k: v for k, v in calibration.items() if not k.startswith("_")},
         "seed": seed, "cases": len(singles), "pairs": len(results) - len(singles),
         "noise_um": list(noise), "points_per_case": int(len(pts)),
         "top1_accuracy": float(np.mean([c["top1_ok"] for c in singles])) if singles else None,

@@ -9,25 +9,29 @@ from typing import Optional
 
 import numpy as np
 
-from stages.gap.effects import catalogue
+from stages.gap.effects import FORCE_SCALE_RANGE, catalogue
 from stages.gap.fit import fit_effects, noise_sigma, params_of
 from stages.gap.servo import refine_servo, servo_signature
 from stages.gap.uncertainty import param_uncertainty, polish_fit
 
 
-def apply_baseline(F: dict, force_scale: float, corner: Optional[tuple] = None) -> dict:
+def apply_baseline(F: dict, force_scale: float, corner: Optional[tuple] = None,
+                   floor_map: Optional[tuple] = None) -> dict:
     """The prediction with its force model scaled and, given ``corner`` = (a µm, λ mm), the model's
     own floor near path corners added (both calibrations found on a reference part:
-    ``corner_floor``).
+    ``corner_floor``); given ``floor_map``, the reference's residual added point by point.
 
     Parameters
     ----------
     F : dict
-        Features of n points (``predicted_um``, ``pred_deflection_um``, ``measured_um``: (n,) µm).
+        Features of n points (``point_id``, ``predicted_um``, ``pred_deflection_um``,
+        ``measured_um``: (n,) µm).
     force_scale : float
         Force-model scale s0 (ratio).
     corner : (float, float), optional
         The corner floor (a µm, λ mm).
+    floor_map : (ids, values), optional
+        The reference's residual (µm) at its point ids; 0 at a point it does not have.
 
     Returns
     -------
@@ -43,10 +47,27 @@ def apply_baseline(F: dict, force_scale: float, corner: Optional[tuple] = None) 
         F["predicted_um"] = F["predicted_um"] + extra
         # kept apart: a re-run of the prediction (``stages.gap.predictor.how_far``) adds it again
         F["baseline_extra_um"] = F.get("baseline_extra_um", 0.0) + extra
+    if floor_map is not None:
+        order = np.argsort(floor_map[0])
+        ids, vals = np.asarray(floor_map[0])[order], np.asarray(floor_map[1], float)[order]
+        pos = np.searchsorted(ids, F["point_id"]).clip(0, len(ids) - 1)
+        extra = np.where(ids[pos] == F["point_id"], vals[pos], 0.0)
+        F["predicted_um"] = F["predicted_um"] + extra
+        F["baseline_extra_um"] = F.get("baseline_extra_um", 0.0) + extra
     F["residual_um"] = F["measured_um"] - F["predicted_um"]
     return F
 
 
+def baseline(F: dict, calibration: dict) -> tuple[dict, float]:
+    """A measurement with a reference part's ``calibration`` (``calibrate``) applied, and the model
+    floor left for the diagnosis's size test (0 once the reference's residual is subtracted point
+    by point)."""
+    fm = calibration.get("_floor_map")
+    F = apply_baseline(F, calibration["force_scale_s0"], calibration["corner_floor"], fm)
+    return F, (0.0 if fm is not None else calibration["floor_um"])
+
+
+S0_SE_MAX = 0.1  # the force scale is taken from a reference that pins it to 10 %
 FLOOR_Z = 3.0   # the corner floor is taken when its amplitude is at least this many standard errors
 
 
@@ -99,12 +120,20 @@ def corner_floor(F: dict) -> Optional[tuple]:
 
 def calibrate(F0: dict, predictor=None) -> dict:
     """Calibration on a reference part measured without any effect to find (a test cut on a warm,
-    checked machine with a measured tool): the force-model scale s0 (least squares of the
-    residual on the predicted deflection), the prediction's floor near path corners as the servo
-    lag it reads as (``corner_floor``: None unless the reference pins it to 3 standard
-    errors), and the model floor left (residual RMS beyond the probe noise). With a ``predictor`` s0
-    becomes its baseline; ``apply_baseline`` applies s0 and the corner floor to a
-    measurement, the floor goes to the diagnosis's size test.
+    checked machine with a measured tool): the force-model scale s0, the prediction's floor near
+    path corners as the servo lag it reads as (``corner_floor``: None unless the reference pins it
+    to 3 standard errors), and the model floor left (residual RMS beyond the probe noise).
+
+    s0 is the least-squares scale of the predicted deflection on the residual, taken only when the
+    reference pins it (standard error ≤ ``S0_SE_MAX``) within ``FORCE_SCALE_RANGE``, else 1: on a
+    floor plan the predicted deflection along the normals is nearly 0 and s0 came out −0.42 and
+    1.88 from two references. When the model floor exceeds the probe noise (the prediction's own
+    error on this program and plan: 4.5 µm RMS on the walls of the sample mould's Z-level program
+    against 0.74 µm of noise, no effect to find), the reference's residual is kept to be subtracted
+    point by point (``_floor_map``; its noise then adds to every measurement's, which the
+    diagnosis's noise estimate sees), since a size test against such a floor hides every effect
+    smaller than it and lets corner patterns pass for effects. With a ``predictor`` s0 becomes its
+    baseline; ``baseline`` applies the calibration to a measurement.
 
     Parameters
     ----------
@@ -116,11 +145,18 @@ def calibrate(F0: dict, predictor=None) -> dict:
     Returns
     -------
     dict
-        ``force_scale_s0``, ``corner_floor`` ((a µm, λ mm) or None), ``floor_um``, ``n_points``,
-        ``reference_rms_um``, ``noise_est_um`` (µm).
+        ``force_scale_s0``, ``force_scale_se``, ``corner_floor`` ((a µm, λ mm) or None), ``floor_um``,
+        ``floor_subtracted`` (bool), ``n_points``, ``reference_rms_um``, ``noise_est_um`` (µm);
+        ``_floor_map`` (ids, residual µm) when the floor is subtracted point by point (not for JSON).
     """
     d = F0["pred_deflection_um"]
-    s0 = float(1.0 + np.dot(d, F0["residual_um"]) / np.dot(d, d)) if np.dot(d, d) > 0 else 1.0
+    dd = float(np.dot(d, d))
+    s0, se = 1.0, math.inf
+    if dd > 0:
+        fit = float(1.0 + np.dot(d, F0["residual_um"]) / dd)
+        se = noise_sigma(F0, F0["residual_um"]) / math.sqrt(dd)
+        if se <= S0_SE_MAX and FORCE_SCALE_RANGE[0] <= fit <= FORCE_SCALE_RANGE[1]:
+            s0 = fit
     F0 = apply_baseline(F0, s0)
     if predictor is not None:
         predictor.scale = s0
@@ -128,5 +164,9 @@ def calibrate(F0: dict, predictor=None) -> dict:
     F0 = apply_baseline(F0, 1.0, corner)
     sig0 = noise_sigma(F0, F0["residual_um"])
     floor = float(math.sqrt(max(np.mean(F0["residual_um"] ** 2) - sig0 ** 2, 0.0)))
-    return {"force_scale_s0": s0, "corner_floor": corner, "floor_um": floor, "n_points": int(len(F0["residual_um"])),
-            "reference_rms_um": float(np.sqrt(np.mean(F0["residual_um"] ** 2))), "noise_est_um": sig0}
+    out = {"force_scale_s0": s0, "force_scale_se": se if math.isfinite(se) else None, "corner_floor": corner,
+           "floor_um": floor, "floor_subtracted": bool(floor > sig0), "n_points": int(len(F0["residual_um"])),
+           "reference_rms_um": float(np.sqrt(np.mean(F0["residual_um"] ** 2))), "noise_est_um": sig0}
+    if out["floor_subtracted"]:
+        out["_floor_map"] = (np.asarray(F0["point_id"]).copy(), F0["residual_um"].astype(float).copy())
+    return out
