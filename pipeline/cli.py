@@ -264,7 +264,8 @@ def simulate(workflow, program, effects, noise_um, seed, plan, out):
 @click.option("--out", "out", type=click.Path(file_okay=False), help="Output directory (default: workflow's `output`).")
 @click.option("--reference", type=click.Path(exists=True, dir_okay=False),
               help="Measurement of a reference part with no effect to find (same program and plan): "
-                   "calibrates the force-model scale, the corner floor and the model floor, as the blind check does.")
+                   "calibrates the force-model scale, the corner floor and the model floor (subtracted point by point "
+                   "when above the probe noise), as the blind check does.")
 def diagnose(workflow, measurements, out, reference):
     """Sim-to-real gap: where, which unmodelled effect, how far it shrinks (held-out)."""
     from pipeline.gap_jobs import diagnose_cmd
