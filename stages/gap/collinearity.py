@@ -12,7 +12,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from stages.gap.effects import Effect
-from stages.gap.fit import bounds_of, fit_joint, grid_subset, lstsq_bounded, predict_effects
+from stages.gap.fit import fit_joint, grid_subset, predict_effects
 
 AMBIGUOUS_RHO = 0.95  # reported as ambiguous: the chosen effect's signatures explain ≥ 90 % of the other's
 
@@ -136,12 +136,12 @@ def orthonormal_basis(X: np.ndarray) -> np.ndarray:
 
 
 def _bounded_fit(F, y, effects: list) -> tuple[float, list]:
-    """``effects`` [(Effect, th)] fitted jointly on all points within their bounds: (SSE µm², each
-    effect's contribution (n,) µm)."""
+    """``effects`` [(Effect, th)] fitted jointly on all points within their bounds, the nonlinear
+    values of all re-fitted together (``fit_joint``): (SSE µm², each effect's contribution (n,) µm)."""
     if not effects:
         return float(y @ y), []
-    X = [e.basis(F, t) for e, t in effects]
-    beta = lstsq_bounded(np.hstack(X), y, *bounds_of(F, effects))
+    ch, th, beta = fit_joint(F, y, np.ones(len(y), bool), effects[:-1], effects[-1][0])
+    X = [e.basis(F, t) for e, t in ch + [(effects[-1][0], th)]]
     ks = np.cumsum([0] + [x.shape[1] for x in X])
     parts = [x @ beta[ks[i]:ks[i + 1]] for i, x in enumerate(X)]
     r = y - sum(parts)
@@ -158,9 +158,10 @@ def held_mimics(F, y, chosen: list, sigma: float, floor_um: float, alpha: float)
     An amplitude the points do not observe (``stages.gap.observability``) is held at 0, so what it
     does on the few points that see it weakly stays in the residual, where another effect may take
     it up: on a floor plan the x part of a thermal drift, read through the 3–4° feet of the ramps,
-    came back as a 1–2 µm tool-contour dent centred on their contact angle. With every held
-    amplitude freed (within its bounds), each chosen effect must still pay for itself next to the
-    others as the backward check asks (``stages.gap.diagnose``): its χ² gain at ``alpha`` and, where
+    came back as a 1–2 µm tool-contour dent centred on their contact angle, and the drift's τ
+    bent to a wear's ramp. With every held amplitude freed (within its bounds) and the nonlinear
+    values re-fitted, each chosen effect must still pay for itself next to the others as the
+    backward check asks (``stages.gap.diagnose``): its χ² gain at ``alpha`` and, where
     it acts, an RMS of half hypot(σ, floor). One that does not is possible, not claimed; the smallest
     goes first, then the check is repeated.
 
