@@ -135,7 +135,7 @@ def orthonormal_basis(X: np.ndarray) -> np.ndarray:
     return U[:, sv > max(sv[0], 1e-300) * 1e-9] if sv.size and sv[0] > 0 else U[:, :0]
 
 
-def _bounded_fit(F, y, effects: list) -> tuple[float, list]:
+def _refit(F, y, effects: list) -> tuple[float, list]:
     """``effects`` [(Effect, th)] fitted jointly on all points within their bounds, the nonlinear
     values of all re-fitted together (``fit_joint``): (SSE µm², each effect's contribution (n,) µm)."""
     if not effects:
@@ -185,13 +185,13 @@ def held_mimics(F, y, chosen: list, sigma: float, floor_um: float, alpha: float)
     possible = {}
     while len(chosen) >= 2 and any(e.keep is not None for e, _ in chosen):
         freed = [(_freed(e), t) for e, t in chosen]
-        sse_all, parts = _bounded_fit(F, y, freed)
+        sse_all, parts = _refit(F, y, freed)
         for i in np.argsort([acting_rms(c) for c in parts]):
             rest = freed[:i] + freed[i + 1:]
             held = [e.name for e, _ in chosen[:i] + chosen[i + 1:] if e.keep is not None]
             if not held:
                 continue
-            d_sse = _bounded_fit(F, y, rest)[0] - sse_all
+            d_sse = _refit(F, y, rest)[0] - sse_all
             support = max(int(np.sum(np.abs(parts[i]) > 0.1 * np.abs(parts[i]).max())), 1) if np.any(parts[i]) else len(y)
             if (d_sse / sigma ** 2 > float(chi2.ppf(1 - alpha, chosen[i][0].n_params))
                     and math.sqrt(max(d_sse, 0.0) / support) >= 0.5 * math.hypot(sigma, floor_um)):
