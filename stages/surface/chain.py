@@ -76,7 +76,7 @@ class Earlier:
             k = self._reaching(e, lo, hi)
             if not len(k):
                 continue
-            b = e.passes.sweep_bounds(e.cutter)[k]
+            b = e.bounds[np.searchsorted(e.cutting, k)]
             c0 = np.clip(np.floor((b[:, 0, :2] - lo) / CELL_MM).astype(np.int64), 0, shape - 1)
             c1 = np.clip(np.floor((b[:, 1, :2] - lo) / CELL_MM).astype(np.int64), 0, shape - 1)
             nx, ny = c1[:, 0] - c0[:, 0] + 1, c1[:, 1] - c0[:, 1] + 1
@@ -86,9 +86,11 @@ class Earlier:
             first = np.searchsorted(pkey_sorted, ckey, side="left")
             count = np.searchsorted(pkey_sorted, ckey, side="right") - first
             pt = order[ragged_ranges(first, count)]
-            ps = k[np.repeat(rep, count)]
-            todo = ~out[pt]
-            pt, ps = pt[todo], ps[todo]
+            pk = np.repeat(rep, count)
+            # the cells are 1 mm: the sweep's own bounds (shank included) drop most pairs at once
+            q = P[pt]
+            todo = ~out[pt] & np.all(q >= b[pk, 0], axis=1) & np.all(q <= b[pk, 1], axis=1)
+            pt, ps = pt[todo], k[pk[todo]]
             hit = inside_sweep(P[pt], e.passes.p0[ps], e.passes.p1[ps], e.cutter, eps=margin)
             out[pt[hit]] = True
         return out
