@@ -12,14 +12,14 @@ from __future__ import annotations
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.compute as pc
 
 from stages import InputError
 from stages.cutting.forces import (
     COEFF_NAMES, DEFAULT_N_ROT, cutting_forces_packed, feed_per_tooth_mm, rotation_grid_deg)
 from stages.geometry.cutter import Cutter
 from stages.surface.engagement import effective_feed_per_tooth
-from stages.tables import binary_rows, list_column, match_passes, pick_entry, program_tool_number, task_count
+from stages.tables import (binary_rows, list_column, match_passes, padded_list_values, pick_entry, program_tool_number,
+                           task_count)
 
 NAME = "forces"
 VERSION = "3"
@@ -81,12 +81,7 @@ def run(inputs: dict, params: dict, shard: tuple[int, int] | None = None) -> dic
     # a descent into material thinner than the feed per tooth cuts only that material per tooth
     chip = fz
     if "chip_limit_mm" in engagement.column_names:
-        lim = engagement.column("chip_limit_mm").combine_chunks()
-        n = pc.fill_null(pc.list_value_length(lim), 0).to_numpy().astype(np.int64)
-        limits = np.full((len(n), int(n.max(initial=0))), np.nan)
-        row = np.repeat(np.arange(len(n)), n)
-        limits[row, np.arange(row.size) - np.repeat(np.cumsum(n) - n, n)] = lim.flatten().to_numpy()
-        chip = effective_feed_per_tooth(fz, limits)
+        chip = effective_feed_per_tooth(fz, padded_list_values(engagement.column("chip_limit_mm")))
         chip = np.where(chip > 0, chip, fz)          # no material in the footprint: the grid has no chip either
     n_z = engagement.column("n_z").to_numpy()
     n_phi = engagement.column("n_phi").to_numpy()

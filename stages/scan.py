@@ -28,7 +28,7 @@ from stages.render import make_renderer
 from stages.surface.engagement import N_PHI, chip_limit, ramp_deg
 from stages.surface.program import CUT_COLUMNS, scan_program
 from stages.surface.strip import GEN_COLUMNS
-from stages.tables import task_count
+from stages.tables import nullable_list_column, task_count
 
 NAME = "scan"
 VERSION = "4"
@@ -90,16 +90,9 @@ def tables(pg, res: dict) -> dict:
                   "n_z": pa.array(res["n_z"], pa.int32()), "n_phi": pa.array(np.full(m, N_PHI), pa.int32()),
                   "mask": pa.array(res["masks"], pa.binary()), "feed_dir_x": np.cos(feed), "feed_dir_y": np.sin(feed),
                   "ramp_deg": pa.array(ramp, pa.float64()),
-                  "chip_limit_mm": _lists(limit)})
+                  "chip_limit_mm": nullable_list_column(limit)})
     out = {"cut_filter": cf, "angle_prune": apt, "generating": g, "engagement": e}
     return {name: schemas.check(name, _sorted(t)) for name, t in out.items()}
-
-
-def _lists(rows: np.ndarray) -> pa.ListArray:
-    """A list<double> column of the rows of ``rows`` (P, Q); a row of NaN is null."""
-    null = np.isnan(rows).all(axis=1)
-    off = np.r_[0, np.cumsum(np.where(null, 0, rows.shape[1]))].astype(np.int32)
-    return pa.ListArray.from_arrays(pa.array(off, mask=np.r_[null, False]), pa.array(rows[~null].ravel(), pa.float64()))
 
 
 def _sorted(t: pa.Table) -> pa.Table:

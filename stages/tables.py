@@ -5,6 +5,7 @@ from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 
 from stages import InputError
 
@@ -48,6 +49,25 @@ def list_values(column, what: str) -> np.ndarray:
         raise InputError(f"{what}: rows have different lengths {sorted(set(lengths.tolist()))[:5]}")
     flat = np.asarray(arr.values.to_numpy(zero_copy_only=False), dtype=float)
     return flat[offsets[0]:offsets[-1]].reshape(n_rows, int(lengths[0]))
+
+
+def nullable_list_column(rows: np.ndarray) -> pa.ListArray:
+    """(P, n) float array → Arrow list<double> column; a row of NaN becomes null."""
+    rows = np.asarray(rows, float)
+    null = np.isnan(rows).all(axis=1)
+    off = np.r_[0, np.cumsum(np.where(null, 0, rows.shape[1]))].astype(np.int32)
+    return pa.ListArray.from_arrays(pa.array(off, mask=np.r_[null, False]), pa.array(rows[~null].ravel(), pa.float64()))
+
+
+def padded_list_values(column) -> np.ndarray:
+    """Arrow list<double> column with rows of any length (nulls too) → (P, longest) float array,
+    NaN where a row is shorter or null."""
+    arr = column.combine_chunks() if isinstance(column, pa.ChunkedArray) else column
+    n = pc.fill_null(pc.list_value_length(arr), 0).to_numpy().astype(np.int64)
+    out = np.full((len(n), int(n.max(initial=0))), np.nan)
+    row = np.repeat(np.arange(len(n)), n)
+    out[row, np.arange(row.size) - np.repeat(np.cumsum(n) - n, n)] = arr.flatten().to_numpy(zero_copy_only=False)
+    return out
 
 
 def binary_rows(column):
