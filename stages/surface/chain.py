@@ -47,15 +47,16 @@ class Earlier:
         return len(self.programs)
 
     def _reaching(self, e: EarlierProgram, lo, hi) -> np.ndarray:
+        """Positions in ``e.cutting`` (and ``e.bounds``) of the passes whose sweeps reach the xy window."""
         b = e.bounds
-        return e.cutting[np.all(b[:, 0, :2] <= hi, axis=1) & np.all(b[:, 1, :2] >= lo, axis=1)]
+        return np.flatnonzero(np.all(b[:, 0, :2] <= hi, axis=1) & np.all(b[:, 1, :2] >= lo, axis=1))
 
     def scenes(self, lo, hi):
         """The sweeps of the earlier programs' passes that reach into the xy window ``lo``–``hi``,
         in machining order, as scan scenes (id :data:`EARLIER_ID`, no depth bias: a pass of the
         program that repeats an earlier cut ties with it and does not count)."""
         for e in self.programs:
-            k = self._reaching(e, lo, hi)
+            k = e.cutting[self._reaching(e, lo, hi)]
             for a in range(0, len(k), PASSES_PER_DRAW):
                 kk = k[a:a + PASSES_PER_DRAW]
                 yield ordered_sweep_scene(e.mesh, e.passes.p0[kk], e.passes.p1[kk], np.full(len(kk), EARLIER_ID))
@@ -73,10 +74,10 @@ class Earlier:
         order = np.argsort(pkey, kind="stable")
         pkey_sorted = pkey[order]
         for e in self.programs:
-            k = self._reaching(e, lo, hi)
-            if not len(k):
+            j = self._reaching(e, lo, hi)
+            if not len(j):
                 continue
-            b = e.bounds[np.searchsorted(e.cutting, k)]
+            k, b = e.cutting[j], e.bounds[j]
             c0 = np.clip(np.floor((b[:, 0, :2] - lo) / CELL_MM).astype(np.int64), 0, shape - 1)
             c1 = np.clip(np.floor((b[:, 1, :2] - lo) / CELL_MM).astype(np.int64), 0, shape - 1)
             nx, ny = c1[:, 0] - c0[:, 0] + 1, c1[:, 1] - c0[:, 1] + 1
